@@ -1,0 +1,160 @@
+"""Exact evaluation on the B-rep: points of a face or an edge at a given height.
+
+Every ring vertex of a DST mesh comes from here. Three primitives:
+
+- :func:`level_point`: Newton on ``z(u, v) = c`` in a face's parameter space from a seed, stepping
+  along the gradient of ``z`` in (u, v); converges quadratically to a point of the face's surface at
+  height ``c`` (|z - c| below ``LEVEL_TOL_MM``).
+- :func:`root_on_uv_segment`: the point at height ``c`` on the surface along a straight (u, v) segment
+  whose ends bracket ``c`` (Brent): used for the crossings of topology-mesh edges inside a face.
+- :func:`root_on_curve`: the point at height ``c`` on an edge's 3D curve between two parameters that
+  bracket it (Brent): used where a section crosses a B-rep edge (a corner of the section).
+
+All points are in millimetres in the part's placement (``BRepAdaptor_*`` apply face and edge locations).
+"""
+
+from __future__ import annotations
+
+import math
+
+from OCP.BRepAdaptor import BRepAdaptor_Curve, BRepAdaptor_Surface
+from OCP.BRepClass import BRepClass_FaceClassifier
+from OCP.gp import gp_Pnt, gp_Pnt2d, gp_Vec
+from OCP.TopAbs import TopAbs_IN, TopAbs_ON
+from OCP.Extrema import Extrema_ExtPC
+from scipy.optimize import brentq
+
+from worker.dst.constants import LEVEL_TOL_MM, NEWTON_MAX_ITER, ROOT_XTOL
+
+
+_RTOL = 4.5 * 2.220446049250313e-16  # brentq refuses anything below 4 * machine epsilon
+
+
+class ExactFailure(Exception):
+    """Newton or a bracketed root did not converge (internal; callers fall back or report)."""
+
+
+class FaceEval:
+    """A face's surface with the bookkeeping Newton needs.
+
+    Parameters
+    ----------
+    adaptor : BRepAdaptor_Surface of the face (location applied)
+    """
+
+    __slots__ = ("ad", "face", "u0", "u1", "v0", "v1", "_p", "_du", "_dv")
+
+    def __init__(self, adaptor: BRepAdaptor_Surface):
+        self.ad = adaptor
+        self.face = adaptor.Face()
+        self.u0, self.u1 = adaptor.FirstUParameter(), adaptor.LastUParameter()
+        self.v0, self.v1 = adaptor.FirstVParameter(), adaptor.LastVParameter()
+        self._p, self._du, self._dv = gp_Pnt(), gp_Vec(), gp_Vec()
+
+    def point(self, u: float, v: float) -> tuple[float, float, float]:
+        p = self.ad.Value(u, v)
+        return p.X(), p.Y(), p.Z()
+
+    def z(self, u: float, v: float) -> float:
+        return self.ad.Value(u, v).Z()
+
+    def z_and_grad(self, u: float, v: float) -> tuple[float, float, float]:
+        """z(u, v) and its partial derivatives (for minimising the height over the face)."""
+        self.ad.D1(u, v, self._p, self._du, self._dv)
+        return self._p.Z(), self._du.Z(), self._dv.Z()
+
+    def contains(self, u: float, v: float, tol: float = 1e-9) -> bool:
+        """True if (u, v) is inside the trimmed face or on its boundary."""
+        state = BRepClass_FaceClassifier(self.face, gp_Pnt2d(u, v), tol).State()
+        return state in (TopAbs_IN, TopAbs_ON)
+
+    def level_point(self, u: float, v: float, c: float, max_step: float) -> tuple[float, float, float, float, float]:
+        """Newton from seed (u, v) to a point at height ``c`` on the surface.
+
+        ``max_step`` bounds each (u, v) step (a trust region of the order of the seed's distance to the
+        level set), so a nearly flat region cannot throw the iterate across the face.
+
+        Returns (x, y, z, u, v) with |z - c| < LEVEL_TOL_MM; raises ExactFailure otherwise.
+        """
+        p, du, dv = self._p, self._du, self._dv
+        ad = self.ad
+        for _ in range(NEWTON_MAX_ITER):
+            ad.D1(u, v, p, du, dv)
+            f = p.Z() - c
+            if abs(f) < LEVEL_TOL_MM:
+                return p.X(), p.Y(), p.Z(), u, v
+            gu, gv = du.Z(), dv.Z()
+            g2 = gu * gu + gv * gv
+            if g2 == 0.0:
+                break
+            su, sv = -f * gu / g2, -f * gv / g2
+            n = math.hypot(su, sv)
+            if n > max_step:
+                su, sv = su * max_step / n, sv * max_step / n
+            u, v = u + su, v + sv
+        raise ExactFailure(f"Newton did not reach z={c:.6f} from ({u:.6g}, {v:.6g})")
+
+    def root_on_uv_segment(
+        self, ua: float, va: float, ub: float, vb: float, c: float
+    ) -> tuple[float, float, float, float, float]:
+        """The point at height ``c`` on the surface along the (u, v) segment a->b (ends must bracket c)."""
+        ad = self.ad
+
+        def g(t: float) -> float:
+            return ad.Value(ua + t * (ub - ua), va + t * (vb - va)).Z() - c
+
+        ga, gb = g(0.0), g(1.0)
+        if ga == 0.0:
+            t = 0.0
+        elif gb == 0.0:
+            t = 1.0
+        elif (ga < 0.0) == (gb < 0.0):
+            raise ExactFailure("segment ends do not bracket the plane")
+        else:
+            t = brentq(g, 0.0, 1.0, xtol=ROOT_XTOL, rtol=_RTOL)
+        u, v = ua + t * (ub - ua), va + t * (vb - va)
+        x, y, z = self.point(u, v)
+        return x, y, z, u, v
+
+
+class EdgeEval:
+    """An edge's 3D curve (location applied) for corner points of the sections."""
+
+    __slots__ = ("ad", "s0", "s1")
+
+    def __init__(self, adaptor: BRepAdaptor_Curve):
+        self.ad = adaptor
+        self.s0, self.s1 = adaptor.FirstParameter(), adaptor.LastParameter()
+
+    def parameter_of(self, xyz: tuple[float, float, float]) -> float:
+        """The curve parameter of the point nearest ``xyz`` (a topology-mesh node on this edge)."""
+        p = gp_Pnt(*xyz)
+        best_d, best_s = p.SquareDistance(self.ad.Value(self.s0)), self.s0
+        d1 = p.SquareDistance(self.ad.Value(self.s1))
+        if d1 < best_d:
+            best_d, best_s = d1, self.s1
+        ext = Extrema_ExtPC(p, self.ad, self.s0, self.s1)
+        if ext.IsDone():
+            for i in range(1, ext.NbExt() + 1):
+                if ext.IsMin(i) and ext.SquareDistance(i) < best_d:
+                    best_d, best_s = ext.SquareDistance(i), ext.Point(i).Parameter()
+        return best_s
+
+    def root(self, sa: float, sb: float, c: float) -> tuple[float, float, float]:
+        """The point at height ``c`` on the curve between parameters ``sa`` and ``sb`` (bracketing)."""
+        ad = self.ad
+
+        def g(s: float) -> float:
+            return ad.Value(s).Z() - c
+
+        ga, gb = g(sa), g(sb)
+        if ga == 0.0:
+            s = sa
+        elif gb == 0.0:
+            s = sb
+        elif (ga < 0.0) == (gb < 0.0):
+            raise ExactFailure("curve span does not bracket the plane")
+        else:
+            s = brentq(g, sa, sb, xtol=ROOT_XTOL * max(1.0, abs(sb - sa)), rtol=_RTOL)
+        p = ad.Value(s)
+        return p.X(), p.Y(), p.Z()

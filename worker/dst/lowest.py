@@ -1,0 +1,98 @@
+"""The part's exact lowest and highest points, made vertices of the topology meshes.
+
+Slicers drop a mesh onto the bed by its lowest vertex, so the DST mesh's lowest vertex must be the
+part's exact lowest point, and plane heights are measured from it. Likewise a plane just below the
+part's top must see the small loop there. The topology mesh's nodes are exact surface points but
+may miss the extreme (the bottom line of a horizontal cylinder, the top of a B-spline dome), so:
+
+1. candidates are the faces and edges touching topology nodes within a few deflections of the
+   lowest (highest) node;
+2. the height is minimised exactly on each: on faces by bounded L-BFGS on z(u, v) from the lowest
+   node's (u, v), kept only if the optimum is inside the trimmed face; on edges by bounded Brent
+   around the lowest sample of the curve;
+3. the node nearest to the winning point is moved onto it (an exact surface point again). Only one
+   node moves, by less than a topology-mesh triangle, so no triangle folds.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import minimize, minimize_scalar
+
+from worker.dst.topomesh import TopoMesh
+
+_CURVE_SAMPLES = 64  # coarse scan of an edge before Brent: finds the basin of its lowest point
+
+
+def snap_extremes(meshes: list[TopoMesh]) -> tuple[float, float]:
+    """Move one node of one mesh onto the exact lowest point and one onto the highest. Returns (zmin, zmax)."""
+    lo = _extreme(meshes, sign=1.0)
+    hi = _extreme(meshes, sign=-1.0)
+    for (mi, node, point) in (lo, hi):
+        meshes[mi].xyz[node] = point
+    return float(lo[2][2]), float(hi[2][2])
+
+
+def _extreme(meshes: list[TopoMesh], *, sign: float) -> tuple[int, int, np.ndarray]:
+    """(mesh index, node, exact point) of the lowest (sign=+1) or highest (sign=-1) point."""
+    best_h = np.inf
+    best: tuple[int, int, np.ndarray] | None = None
+    node_h = [sign * m.xyz[:, 2] for m in meshes]
+    global_node = min(float(h.min()) for h in node_h)
+    for mi, mesh in enumerate(meshes):
+        h = node_h[mi]
+        window = global_node + 4.0 * mesh.deflection
+        if h.min() > window:
+            continue
+        low_nodes = np.flatnonzero(h <= window)
+        low_set = set(low_nodes.tolist())
+        # Start from the node itself: already exact, so the result never gets worse.
+        n0 = int(low_nodes[np.argmin(h[low_nodes])])
+        candidates = [(float(h[n0]), mesh.xyz[n0].copy())]
+        tri_mask = np.isin(mesh.tris, low_nodes).any(axis=1)
+        for f in np.unique(mesh.tri_face[tri_mask]).tolist():
+            candidates.extend(_face_extreme(mesh, f, tri_mask, sign))
+        edge_ids = {ei for (a, b), ei in mesh.edge_of.items() if a in low_set or b in low_set}
+        for ei in sorted(edge_ids):
+            candidates.append(_edge_extreme(mesh, ei, sign))
+        hval, point = min(candidates, key=lambda c: c[0])
+        if hval < best_h:
+            nearest = int(np.argmin(np.linalg.norm(mesh.xyz[low_nodes] - point, axis=1)))
+            best_h, best = hval, (mi, int(low_nodes[nearest]), point)
+    assert best is not None
+    return best
+
+
+def _face_extreme(mesh: TopoMesh, f: int, tri_mask: np.ndarray, sign: float) -> list[tuple[float, np.ndarray]]:
+    fe = mesh.faces[f]
+    sel = np.flatnonzero(tri_mask & (mesh.tri_face == f))
+    corners = mesh.tris[sel].ravel()
+    uvs = mesh.tri_uv[sel].reshape(-1, 2)
+    k = int(np.argmin(sign * mesh.xyz[corners, 2]))
+    u0, v0 = uvs[k]
+
+    def fun(x: np.ndarray) -> tuple[float, np.ndarray]:
+        z, zu, zv = fe.z_and_grad(float(x[0]), float(x[1]))
+        return sign * z, sign * np.array([zu, zv])
+
+    res = minimize(fun, np.array([u0, v0]), jac=True, method="L-BFGS-B",
+                   bounds=[(fe.u0, fe.u1), (fe.v0, fe.v1)], options={"ftol": 1e-15, "gtol": 1e-12})
+    u, v = (float(x) for x in res.x)
+    if not fe.contains(u, v):
+        return []
+    p = np.array(fe.point(u, v))
+    return [(sign * p[2], p)]
+
+
+def _edge_extreme(mesh: TopoMesh, ei: int, sign: float) -> tuple[float, np.ndarray]:
+    ev = mesh.edges[ei]
+    s = np.linspace(ev.s0, ev.s1, _CURVE_SAMPLES + 1)
+    h = np.array([sign * ev.ad.Value(float(x)).Z() for x in s])
+    i = int(np.argmin(h))
+    lo, hi = s[max(i - 1, 0)], s[min(i + 1, len(s) - 1)]
+    res = minimize_scalar(lambda x: sign * ev.ad.Value(float(x)).Z(), bounds=(lo, hi), method="bounded",
+                          options={"xatol": 1e-13 * max(1.0, abs(ev.s1 - ev.s0))})
+    x = float(res.x) if sign * ev.ad.Value(float(res.x)).Z() <= h[i] else float(s[i])
+    p = ev.ad.Value(x)
+    pt = np.array([p.X(), p.Y(), p.Z()])
+    return sign * pt[2], pt

@@ -1,0 +1,182 @@
+"""STEP in, DST mesh out: the whole core for one part, with its statistics and warnings."""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from OCP.Bnd import Bnd_Box
+from OCP.BRepBndLib import BRepBndLib
+
+from worker.dst import constants as C
+from worker.dst.errors import TessellationError
+from worker.dst.lowest import snap_extremes
+from worker.dst.params import SliceParams
+from worker.dst.planes import PlanePlan, plan_planes
+from worker.dst.sampling import RingSampler, VertexPool
+from worker.dst.sections import cut_topology
+from worker.dst.step_io import LoadedPart, read_step, solid_volume
+from worker.dst.stl_io import write_stl
+from worker.dst.tessellate import tessellate_solid
+from worker.dst.topomesh import build_topomesh
+from worker.dst.warnings import flat_faces_on_planes
+
+Progress = Callable[[str, float], None]
+
+
+@dataclass
+class DstMesh:
+    """A finished DST mesh.
+
+    vertices : (V, 3) float64, mm; part placed with its exact lowest point at z = 0, x and y unchanged
+    triangles : (F, 3) int64, counter-clockwise seen from outside
+    vertex_plane : (V,) int64, index of the plane a ring vertex lies on, else -1
+    planes : the slicing planes (heights above the part's lowest point)
+    """
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    vertex_plane: np.ndarray
+    planes: PlanePlan
+    z_offset: float
+    part: LoadedPart
+    params: SliceParams
+    warnings: list[str] = field(default_factory=list)
+    stats: dict = field(default_factory=dict)
+
+    @property
+    def vertices32(self) -> np.ndarray:
+        """(V, 3) float32 as written to STL; ring vertices' z is exactly ``float32(plane)``."""
+        v = self.vertices.astype(np.float32)
+        ring = self.vertex_plane >= 0
+        v[ring, 2] = self.planes.z32[self.vertex_plane[ring]]
+        return v
+
+    def write_stl(self, path: str | os.PathLike[str], *, ascii: bool = False) -> int:
+        return write_stl(path, self.vertices32, self.triangles, ascii=ascii)
+
+
+def slice_step(
+    path: str | os.PathLike[str], params: SliceParams, *, progress: Progress | None = None
+) -> DstMesh:
+    """Read ``path`` and build its DST mesh for ``params``."""
+    report = progress or (lambda stage, frac: None)
+    t0 = time.perf_counter()
+    report("reading STEP", 0.0)
+    part = read_step(path)
+    return slice_part(part, params, progress=report, t0=t0)
+
+
+def slice_part(part: LoadedPart, params: SliceParams, *, progress: Progress | None = None, t0: float | None = None) -> DstMesh:
+    report = progress or (lambda stage, frac: None)
+    t0 = time.perf_counter() if t0 is None else t0
+    timings: dict[str, float] = {"read": time.perf_counter() - t0}
+    warnings = list(part.warnings)
+
+    diag = bbox_diagonal(part)
+    deflection = min(C.TOPO_DEFLECTION_MAX_MM, max(C.TOPO_DEFLECTION_MIN_MM, C.TOPO_DEFLECTION_REL * diag))
+    deflection = min(deflection, params.chord_error)
+    t = time.perf_counter()
+    meshes = []
+    for si, solid in enumerate(part.solids):
+        report(f"meshing solid {si + 1}/{len(part.solids)}", 0.1 * si / len(part.solids))
+        meshes.append(
+            build_topomesh(solid, deflection=deflection, angular=C.TOPO_ANGULAR_RAD, merge_tol=C.MERGE_TOL_REL * diag)
+        )
+    timings["topomesh"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    zmin, zmax = snap_extremes(meshes)
+    height = zmax - zmin
+    planes = plan_planes(height=height, params=params)
+    world = zmin + planes.section_z
+    timings["extremes"] = time.perf_counter() - t
+
+    pool = VertexPool()
+    all_tris: list[tuple[int, int, int]] = []
+    stats: dict = {"solids": len(part.solids), "planes": len(planes), "height_mm": height}
+    sampling_totals = {"newton_solves": 0, "edge_roots": 0, "fallbacks": 0}
+    for si, mesh in enumerate(meshes):
+        frac = 0.1 + 0.85 * si / len(meshes)
+        t = time.perf_counter()
+        topo = cut_topology(mesh, world, on_plane_tol=C.ON_PLANE_TOL_MM)
+        timings["sections"] = timings.get("sections", 0.0) + time.perf_counter() - t
+        report(f"sampling solid {si + 1}/{len(part.solids)}", frac)
+        t = time.perf_counter()
+        sampler = RingSampler(mesh, topo, pool, segment_length=params.segment_length, chord_error=params.chord_error)
+        tris, tstats = tessellate_solid(sampler)
+        timings["tessellate"] = timings.get("tessellate", 0.0) + time.perf_counter() - t
+        all_tris.extend(tris)
+        for k, v in tstats.items():
+            stats[k] = stats.get(k, 0) + v
+        for k in sampling_totals:
+            sampling_totals[k] += getattr(sampler.stats, k)
+    stats.update(sampling_totals)
+
+    report("checking mesh", 0.95)
+    vertices = np.asarray(pool.xyz, dtype=np.float64).reshape(-1, 3)
+    vertex_plane = np.asarray(pool.plane, dtype=np.int64)
+    triangles = np.asarray(all_tris, dtype=np.int64).reshape(-1, 3)
+    vertices[:, 2] -= zmin
+    ring = vertex_plane >= 0
+    vertices[ring, 2] = planes.z[vertex_plane[ring]]
+    check_mesh(vertices, triangles)
+    warnings.extend(flat_faces_on_planes(part.solids, zmin=zmin, planes=planes))
+    stats["triangles"] = len(triangles)
+    stats["vertices"] = len(vertices)
+    stats["ring_vertices"] = int(ring.sum())
+    stats["exact_volume_mm3"] = float(sum(solid_volume(s) for s in part.solids))
+    stats["mesh_volume_mm3"] = mesh_volume(vertices, triangles)
+    timings["total"] = time.perf_counter() - t0
+    stats["timings_s"] = {k: round(v, 4) for k, v in timings.items()}
+    report("done", 1.0)
+    return DstMesh(
+        vertices=vertices,
+        triangles=triangles,
+        vertex_plane=vertex_plane,
+        planes=planes,
+        z_offset=zmin,
+        part=part,
+        params=params,
+        warnings=warnings,
+        stats=stats,
+    )
+
+
+def bbox_diagonal(part: LoadedPart) -> float:
+    """Diagonal of the part's (loose, fast) bounding box, mm: the scale for relative tolerances."""
+    box = Bnd_Box()
+    BRepBndLib.Add_s(part.compound, box, False)
+    lo, hi = np.array(box.CornerMin().Coord()), np.array(box.CornerMax().Coord())
+    return float(np.linalg.norm(hi - lo))
+
+
+def mesh_volume(v: np.ndarray, t: np.ndarray) -> float:
+    """Signed volume (mm^3) enclosed by a closed triangle mesh (divergence theorem)."""
+    a, b, c = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
+    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+
+
+def check_mesh(v: np.ndarray, t: np.ndarray) -> None:
+    """Raise TessellationError unless the mesh is a closed, oriented 2-manifold without zero-area faces."""
+    if len(t) == 0:
+        raise TessellationError("the mesh is empty")
+    d = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
+    n = len(v)
+    key = d[:, 0] * n + d[:, 1]
+    uniq, counts = np.unique(key, return_counts=True)
+    rkey = d[:, 1] * n + d[:, 0]
+    open_edges = int((~np.isin(rkey, uniq)).sum())
+    dup = int((counts > 1).sum())
+    area2 = np.linalg.norm(np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1)
+    zero = int((area2 <= 1e-18).sum())
+    if open_edges or dup or zero:
+        raise TessellationError(
+            f"mesh check failed: {open_edges} open edges, {dup} non-manifold edges, {zero} zero-area triangles"
+        )
+    if not math.isfinite(mesh_volume(v, t)) or mesh_volume(v, t) <= 0:
+        raise TessellationError("mesh check failed: the mesh is inside out")

@@ -1,0 +1,228 @@
+"""Section topology: the topology mesh cut by every plane, vectorised.
+
+Conventions (a symbolic perturbation that makes every degenerate case consistent): a node exactly on
+a plane counts as *above* it. A topology-mesh edge from a lower node ``a`` to an upper node ``b``
+crosses plane ``j`` when ``z_a < z_j <= z_b``; when ``z_j == z_b`` the crossing *is* node ``b``.
+
+Slab ``k`` is the open layer between plane ``k - 1`` and plane ``k`` (slab 0 is below the first plane,
+slab ``P`` above the last). A triangle spanning several slabs contributes one convex *piece* to each.
+Pieces sharing an edge inside a slab are connected; a connected set of pieces is a *component*. Each
+section loop at plane ``j`` bounds exactly one component of slab ``j`` (below) and one of slab
+``j + 1`` (above). A component with one loop below, one above and Euler characteristic 0 is an annulus:
+a strip of triangles between its two rings is topologically exact there ("zipper"). Every other
+component (caps, branching, handles, closed pieces between two planes) keeps its topology-mesh pieces.
+
+Loops are oriented with the material on their left seen from above (outer loops counter-clockwise).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from worker.dst.errors import TessellationError
+from worker.dst.topomesh import TopoMesh
+
+
+@dataclass
+class SectionTopology:
+    """Everything the sampler and the tessellator need about the cut topology mesh.
+
+    z : (n,) float64          node heights used for classification (snapped onto planes within tol)
+    slab : (n,) int64         slab index of each node
+    planes : (P,) float64     world plane heights
+    edges : (E, 2) int64      undirected topology-mesh edges (a < b)
+    edge_tris : (E, 2) int64  the two triangles of each edge
+    tri_edges : (m, 3) int64  edge id of corner edge k -> k+1 of each triangle
+    edge_lo, edge_hi          slab range of each edge (inclusive)
+    cross_off : (E,) int64    first crossing id of each edge (crossings of edge e: planes lo..hi-1)
+    cross_edge, cross_plane   per crossing
+    cross_node : (N,) int64   the node a crossing coincides with, or -1
+    succ : (N,) int64         next crossing along its loop
+    seg_tri : (N,) int64      triangle holding the segment that starts at a crossing
+    loops : list of (plane, crossing ids in order)
+    loop_below, loop_above    component ids on both sides of each loop
+    tri_smin, piece_off       piece id of (triangle T, slab k) = piece_off[T] + k - tri_smin[T]
+    piece_comp : (Q,) int64   component of each piece
+    comp_is_annulus : (C,) bool
+    """
+
+    z: np.ndarray
+    slab: np.ndarray
+    planes: np.ndarray
+    edges: np.ndarray
+    edge_tris: np.ndarray
+    tri_edges: np.ndarray
+    edge_lo: np.ndarray
+    edge_hi: np.ndarray
+    cross_off: np.ndarray
+    cross_edge: np.ndarray
+    cross_plane: np.ndarray
+    cross_node: np.ndarray
+    succ: np.ndarray
+    seg_tri: np.ndarray
+    loops: list[tuple[int, np.ndarray]]
+    loop_below: np.ndarray
+    loop_above: np.ndarray
+    tri_smin: np.ndarray
+    tri_smax: np.ndarray
+    piece_off: np.ndarray
+    piece_comp: np.ndarray
+    comp_is_annulus: np.ndarray
+    comp_bottom: list[list[int]]
+    comp_top: list[list[int]]
+
+    def crossing_id(self, edge: int, plane: int) -> int:
+        return int(self.cross_off[edge] + plane - self.edge_lo[edge])
+
+    def piece(self, tri: int, slab: int) -> int:
+        return int(self.piece_off[tri] + slab - self.tri_smin[tri])
+
+
+def cut_topology(mesh: TopoMesh, planes: np.ndarray, *, on_plane_tol: float) -> SectionTopology:
+    """Cut ``mesh`` by the (ascending, world) ``planes`` and derive loops and slab components."""
+    z = mesh.xyz[:, 2].copy()
+    # Nodes within tolerance of a plane are put exactly on it: a float32 slicer cannot tell them apart
+    # from the plane anyway, and exact equality is what the crossing convention handles cleanly.
+    if planes.size:
+        near = np.clip(np.searchsorted(planes, z), 1, planes.size) - 1
+        for cand in (near, np.minimum(near + 1, planes.size - 1)):
+            close = np.abs(z - planes[cand]) <= on_plane_tol
+            z[close] = planes[cand[close]]
+    slab = np.searchsorted(planes, z, side="right").astype(np.int64)
+    tris = mesh.tris
+    m = len(tris)
+    n = len(z)
+
+    # --- undirected edges and their two triangles --------------------------------------------------
+    corner_a = np.concatenate([tris[:, 0], tris[:, 1], tris[:, 2]])
+    corner_b = np.concatenate([tris[:, 1], tris[:, 2], tris[:, 0]])
+    lo_id, hi_id = np.minimum(corner_a, corner_b), np.maximum(corner_a, corner_b)
+    keys, inv = np.unique(lo_id * n + hi_id, return_inverse=True)
+    n_edges = len(keys)
+    edges = np.stack([keys // n, keys % n], axis=1)
+    order = np.argsort(inv, kind="stable")
+    if len(order) != 2 * n_edges:
+        raise TessellationError("topology mesh is not a closed 2-manifold")
+    edge_tris = (order.reshape(-1, 2) % m).astype(np.int64)
+    tri_edges = inv.reshape(3, m).T.copy()
+
+    s_a, s_b = slab[edges[:, 0]], slab[edges[:, 1]]
+    edge_lo, edge_hi = np.minimum(s_a, s_b), np.maximum(s_a, s_b)
+    n_cross_e = edge_hi - edge_lo
+    cross_off = np.concatenate([[0], np.cumsum(n_cross_e)[:-1]]).astype(np.int64)
+    n_cross = int(n_cross_e.sum())
+    cross_edge = np.repeat(np.arange(n_edges), n_cross_e)
+    cross_plane = edge_lo[cross_edge] + (np.arange(n_cross) - cross_off[cross_edge])
+    upper = np.where(s_a >= s_b, edges[:, 0], edges[:, 1])
+    up_node = upper[cross_edge]
+    cross_node = np.where(z[up_node] == planes[cross_plane] if n_cross else np.zeros(0, bool), up_node, -1)
+
+    # --- triangle segments: start on the edge going above->below, end on the edge going below->above
+    smin, smax = slab[tris].min(axis=1), slab[tris].max(axis=1)
+    n_seg_t = smax - smin
+    seg_t = np.repeat(np.arange(m), n_seg_t)
+    seg_off = np.concatenate([[0], np.cumsum(n_seg_t)[:-1]]).astype(np.int64)
+    seg_j = smin[seg_t] + (np.arange(len(seg_t)) - seg_off[seg_t])
+    above = slab[tris[seg_t]] > seg_j[:, None]
+    nxt = np.roll(above, -1, axis=1)
+    k_start = np.argmax(above & ~nxt, axis=1)
+    k_end = np.argmax(~above & nxt, axis=1)
+    e_start = tri_edges[seg_t, k_start]
+    e_end = tri_edges[seg_t, k_end]
+    c_start = cross_off[e_start] + seg_j - edge_lo[e_start]
+    c_end = cross_off[e_end] + seg_j - edge_lo[e_end]
+    succ = np.full(n_cross, -1, dtype=np.int64)
+    succ[c_start] = c_end
+    seg_tri = np.full(n_cross, -1, dtype=np.int64)
+    seg_tri[c_start] = seg_t
+    if n_cross and (succ < 0).any():
+        raise TessellationError("section segments do not close into loops (non-manifold topology mesh)")
+
+    loops = _walk_loops(succ, cross_plane)
+
+    # --- slab pieces and components ------------------------------------------------------------------
+    n_piece_t = smax - smin + 1
+    piece_off = np.concatenate([[0], np.cumsum(n_piece_t)[:-1]]).astype(np.int64)
+    n_pieces = int(n_piece_t.sum())
+    n_eseg = edge_hi - edge_lo + 1
+    e_rep = np.repeat(np.arange(n_edges), n_eseg)
+    e_off = np.concatenate([[0], np.cumsum(n_eseg)[:-1]]).astype(np.int64)
+    e_k = edge_lo[e_rep] + (np.arange(len(e_rep)) - e_off[e_rep])
+    t1, t2 = edge_tris[e_rep, 0], edge_tris[e_rep, 1]
+    p1 = piece_off[t1] + e_k - smin[t1]
+    p2 = piece_off[t2] + e_k - smin[t2]
+    graph = coo_matrix((np.ones(len(p1)), (p1, p2)), shape=(n_pieces, n_pieces))
+    n_comp, piece_comp = connected_components(graph, directed=False)
+
+    # Euler characteristic of each component: V - E + F of its open-slab cell complex (the loops'
+    # vertices and edges cancel out: a closed loop has as many edges as vertices).
+    faces_c = np.bincount(piece_comp, minlength=n_comp)
+    edges_c = np.bincount(piece_comp[p1], minlength=n_comp)
+    vt = np.empty(n, dtype=np.int64)
+    vt[tris.ravel()] = np.repeat(np.arange(m), 3)
+    verts_c = np.bincount(piece_comp[piece_off[vt] + slab - smin[vt]], minlength=n_comp)
+    euler = verts_c - edges_c + faces_c
+
+    loop_below = np.empty(len(loops), dtype=np.int64)
+    loop_above = np.empty(len(loops), dtype=np.int64)
+    comp_bottom: list[list[int]] = [[] for _ in range(n_comp)]
+    comp_top: list[list[int]] = [[] for _ in range(n_comp)]
+    for li, (j, cross) in enumerate(loops):
+        t = int(seg_tri[cross[0]])
+        below = int(piece_comp[piece_off[t] + j - smin[t]])
+        above_c = int(piece_comp[piece_off[t] + j + 1 - smin[t]])
+        loop_below[li], loop_above[li] = below, above_c
+        comp_top[below].append(li)
+        comp_bottom[above_c].append(li)
+    n_bottom = np.array([len(b) for b in comp_bottom])
+    n_top = np.array([len(t) for t in comp_top])
+    comp_is_annulus = (n_bottom == 1) & (n_top == 1) & (euler == 0)
+
+    return SectionTopology(
+        z=z,
+        slab=slab,
+        planes=planes,
+        edges=edges,
+        edge_tris=edge_tris,
+        tri_edges=tri_edges,
+        edge_lo=edge_lo,
+        edge_hi=edge_hi,
+        cross_off=cross_off,
+        cross_edge=cross_edge,
+        cross_plane=cross_plane,
+        cross_node=cross_node,
+        succ=succ,
+        seg_tri=seg_tri,
+        loops=loops,
+        loop_below=loop_below,
+        loop_above=loop_above,
+        tri_smin=smin,
+        tri_smax=smax,
+        piece_off=piece_off,
+        piece_comp=piece_comp,
+        comp_is_annulus=comp_is_annulus,
+        comp_bottom=comp_bottom,
+        comp_top=comp_top,
+    )
+
+
+def _walk_loops(succ: np.ndarray, cross_plane: np.ndarray) -> list[tuple[int, np.ndarray]]:
+    """Split the permutation ``succ`` into its cycles (each a closed section loop)."""
+    nxt = succ.tolist()
+    seen = bytearray(len(nxt))
+    loops = []
+    for c0 in range(len(nxt)):
+        if seen[c0]:
+            continue
+        cyc = []
+        c = c0
+        while not seen[c]:
+            seen[c] = 1
+            cyc.append(c)
+            c = nxt[c]
+        loops.append((int(cross_plane[c0]), np.asarray(cyc, dtype=np.int64)))
+    return loops

@@ -1,0 +1,82 @@
+"""STL output, streamed to the file in chunks (no second copy of the mesh in memory)."""
+
+from __future__ import annotations
+
+import os
+import struct
+from typing import BinaryIO
+
+import numpy as np
+
+CHUNK_TRIANGLES = 65_536
+_STL_DTYPE = np.dtype([("normal", "<f4", (3,)), ("v", "<f4", (3, 3)), ("attr", "<u2")])
+
+
+def write_stl(
+    path: str | os.PathLike[str], vertices32: np.ndarray, triangles: np.ndarray, *, ascii: bool = False, name: str = "dst"
+) -> int:
+    """Write ``vertices32`` (float32, mm) and ``triangles`` (int, outward CCW) to ``path``; return bytes.
+
+    The file is written to a temporary name beside ``path`` and renamed, so a reader never sees a
+    partial file and a failure leaves nothing behind.
+    """
+    path = os.fspath(path)
+    tmp = f"{path}.part"
+    try:
+        with open(tmp, "wb") as fh:
+            if ascii:
+                _write_ascii(fh, vertices32, triangles, name)
+            else:
+                _write_binary(fh, vertices32, triangles, name)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return os.path.getsize(path)
+
+
+def binary_stl_size(n_triangles: int) -> int:
+    """Size in bytes of a binary STL with ``n_triangles`` facets."""
+    return 84 + 50 * n_triangles
+
+
+def _normals(tri_xyz: np.ndarray) -> np.ndarray:
+    n = np.cross(tri_xyz[:, 1] - tri_xyz[:, 0], tri_xyz[:, 2] - tri_xyz[:, 0])
+    norm = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.divide(n, norm, out=np.zeros_like(n), where=norm > 0)
+
+
+def _write_binary(fh: BinaryIO, v: np.ndarray, t: np.ndarray, name: str) -> None:
+    header = f"DST mesh {name}".encode("ascii", "replace")[:80].ljust(80, b" ")
+    fh.write(header)
+    fh.write(struct.pack("<I", len(t)))
+    for i in range(0, len(t), CHUNK_TRIANGLES):
+        tri_xyz = v[t[i : i + CHUNK_TRIANGLES]].astype(np.float64)
+        rec = np.zeros(len(tri_xyz), dtype=_STL_DTYPE)
+        rec["normal"] = _normals(tri_xyz)
+        rec["v"] = v[t[i : i + CHUNK_TRIANGLES]]
+        fh.write(rec.tobytes())
+
+
+def _write_ascii(fh: BinaryIO, v: np.ndarray, t: np.ndarray, name: str) -> None:
+    fh.write(f"solid {name}\n".encode())
+    for i in range(0, len(t), CHUNK_TRIANGLES):
+        tri32 = v[t[i : i + CHUNK_TRIANGLES]]
+        normals = _normals(tri32.astype(np.float64))
+        lines = []
+        for n, (a, b, c) in zip(normals, tri32, strict=True):
+            # repr of a float32 round-trips exactly: ring heights survive the text format
+            lines.append(
+                f"facet normal {n[0]:e} {n[1]:e} {n[2]:e}\n outer loop\n"
+                f"  vertex {_f(a[0])} {_f(a[1])} {_f(a[2])}\n"
+                f"  vertex {_f(b[0])} {_f(b[1])} {_f(b[2])}\n"
+                f"  vertex {_f(c[0])} {_f(c[1])} {_f(c[2])}\n"
+                " endloop\nendfacet\n"
+            )
+        fh.write("".join(lines).encode())
+    fh.write(f"endsolid {name}\n".encode())
+
+
+def _f(x: np.float32) -> str:
+    return np.format_float_positional(x, unique=True, trim="-") if x == x else "nan"

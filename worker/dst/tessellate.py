@@ -1,0 +1,174 @@
+"""Assemble the DST mesh of one solid from its rings and slab components.
+
+- An annulus component (one ring below, one above, Euler characteristic 0) becomes a *zipper*: a
+  strip of triangles each with two vertices on one ring and one on the other, advancing along both
+  rings by normalised arc length from their nearest pair. Two triangles per ring vertex.
+- Every other component keeps its topology-mesh pieces: each triangle clipped to the slab, its cut
+  edges replaced by the exact ring vertices (crossings and the points that keep them within budget).
+  A piece is triangulated as a fan from a node strictly inside the slab, or, when it has none, as a
+  zipper between its lower and upper chain, so no triangle joins two vertices of one plane except
+  along a ring edge.
+
+Every vertex is an exact surface point (ring vertices exact on their plane), every triangle lies
+between two consecutive planes, and the cut of the mesh by plane ``j`` is exactly its rings.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from worker.dst.sampling import RingSampler, VertexPool
+from worker.dst.sections import SectionTopology
+
+
+def tessellate_solid(sampler: RingSampler) -> tuple[list[tuple[int, int, int]], dict]:
+    """Triangles (vertex ids into ``sampler.pool``) of one solid, and counts for the report."""
+    topo: SectionTopology = sampler.topo
+    annulus = topo.comp_is_annulus
+    free = annulus[topo.loop_below] & annulus[topo.loop_above]
+    rings: dict[int, list[int]] = {}
+    for li in range(len(topo.loops)):
+        rings[li] = sampler.free_loop(li) if free[li] else sampler.pinned_loop(li)
+
+    out: list[tuple[int, int, int]] = []
+    for comp in np.flatnonzero(annulus).tolist():
+        (lb,), (lt,) = topo.comp_bottom[comp], topo.comp_top[comp]
+        out.extend(zipper(rings[lb], rings[lt], sampler.pool))
+
+    kept = ~annulus[topo.piece_comp]
+    pieces = np.flatnonzero(kept)
+    n_kept_pieces = len(pieces)
+    if n_kept_pieces:
+        tri_of = np.searchsorted(topo.piece_off, pieces, side="right") - 1
+        slab_of = pieces - topo.piece_off[tri_of] + topo.tri_smin[tri_of]
+        whole = topo.tri_smin[tri_of] == topo.tri_smax[tri_of]
+        for t in tri_of[whole].tolist():
+            a, b, c = (sampler.node(int(n)) for n in sampler.mesh.tris[t])
+            out.append((a, b, c))
+        for t, k in zip(tri_of[~whole].tolist(), slab_of[~whole].tolist(), strict=True):
+            out.extend(_piece_triangles(sampler, t, k))
+    stats = {
+        "loops": len(topo.loops),
+        "free_loops": int(free.sum()),
+        "annulus_components": int(annulus.sum()),
+        "kept_components": int((~annulus).sum()),
+        "kept_pieces": n_kept_pieces,
+    }
+    return out, stats
+
+
+def zipper(bottom: list[int], top: list[int], pool: VertexPool) -> list[tuple[int, int, int]]:
+    """Triangulate the strip between two closed rings oriented alike (material on the left)."""
+    pb = np.array([pool.xyz[v] for v in bottom])
+    pt = np.array([pool.xyz[v] for v in top])
+    j0 = int(np.argmin(np.sum((pt[:, :2] - pb[0, :2]) ** 2, axis=1)))
+    top = top[j0:] + top[:j0]
+    pt = np.roll(pt, -j0, axis=0)
+    ub = _closed_arclength(pb)
+    ut = _closed_arclength(pt)
+    m, n = len(bottom), len(top)
+    tris = []
+    i = j = 0
+    while i < m or j < n:
+        if i < m and (j >= n or ub[i + 1] <= ut[j + 1]):
+            tris.append((bottom[i], bottom[(i + 1) % m], top[j % n]))
+            i += 1
+        else:
+            tris.append((bottom[i % m], top[(j + 1) % n], top[j]))
+            j += 1
+    return tris
+
+
+def _closed_arclength(p: np.ndarray) -> np.ndarray:
+    """(k + 1,) normalised cumulative length around a closed polyline of k points."""
+    d = np.linalg.norm(np.diff(np.vstack([p, p[:1]]), axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(d)])
+    return s / s[-1] if s[-1] > 0 else np.linspace(0.0, 1.0, len(s))
+
+
+def _piece_triangles(sampler: RingSampler, t: int, k: int) -> list[tuple[int, int, int]]:
+    """The part of topology triangle ``t`` inside slab ``k``, with exact ring vertices on its cuts."""
+    topo, mesh = sampler.topo, sampler.mesh
+    tri = mesh.tris[t].tolist()
+    s = [int(topo.slab[n]) for n in tri]
+    poly: list[tuple[int, str]] = []  # (vertex id, kind) with kind 'in' (node inside slab) or 'p<j>'
+    cross_seq: list[int] = []  # crossing id at each poly position, or -1
+    for i in range(3):
+        a, b = tri[i], tri[(i + 1) % 3]
+        if s[i] == k:
+            vid = sampler.node(a)
+            on = sampler.pool.plane[vid]
+            poly.append((vid, "in" if on < 0 else f"p{on}"))
+            cross_seq.append(-1)
+        sa, sb = s[i], s[(i + 1) % 3]
+        if sa == sb:
+            continue
+        e = int(topo.tri_edges[t, i])
+        if sa < sb:
+            planes = [j for j in (k - 1, k) if sa <= j < sb]
+        else:
+            planes = [j for j in (k, k - 1) if sb <= j < sa]
+        for j in planes:
+            c = topo.crossing_id(e, j)
+            poly.append((sampler.crossing(c), f"p{j}"))
+            cross_seq.append(c)
+    # Insert the exact points that subdivide each cut segment of this triangle.
+    full: list[tuple[int, str]] = []
+    n = len(poly)
+    for i in range(n):
+        full.append(poly[i])
+        c0, c1 = cross_seq[i], cross_seq[(i + 1) % n]
+        if c0 < 0 or c1 < 0 or topo.cross_plane[c0] != topo.cross_plane[c1]:
+            continue
+        j = int(topo.cross_plane[c0])
+        zc = float(topo.planes[j])
+        if topo.succ[c0] == c1 and topo.seg_tri[c0] == t:
+            inner = sampler.pinned_segment(c0, c1, j, zc)
+        elif topo.succ[c1] == c0 and topo.seg_tri[c1] == t:
+            inner = sampler.pinned_segment(c1, c0, j, zc)[::-1]
+        else:
+            continue
+        full.extend((v, f"p{j}") for v in inner)
+    # Drop repeated vertices (a crossing that is a node on the plane appears twice).
+    ring: list[tuple[int, str]] = []
+    for item in full:
+        if not ring or ring[-1][0] != item[0]:
+            ring.append(item)
+    while len(ring) > 1 and ring[0][0] == ring[-1][0]:
+        ring.pop()
+    if len(ring) < 3:
+        return []
+    ids = [v for v, _ in ring]
+    kinds = [kd for _, kd in ring]
+    if "in" in kinds:
+        apex = kinds.index("in")
+        m = len(ids)
+        return [
+            (ids[apex], ids[(apex + q) % m], ids[(apex + q + 1) % m]) for q in range(1, m - 1)
+        ]
+    return _two_chain_zipper(ids, kinds)
+
+
+def _two_chain_zipper(ids: list[int], kinds: list[str]) -> list[tuple[int, int, int]]:
+    """Triangulate a polygon whose vertices lie on (at most) two planes without in-plane diagonals."""
+    m = len(ids)
+    if len(set(kinds)) == 1:
+        return [(ids[0], ids[q], ids[q + 1]) for q in range(1, m - 1)]
+    # Rotate so the polygon starts where the first chain starts.
+    start = next(q for q in range(m) if kinds[q] != kinds[q - 1])
+    ids = ids[start:] + ids[:start]
+    kinds = kinds[start:] + kinds[:start]
+    split = next(q for q in range(m) if kinds[q] != kinds[0])
+    chain_a = ids[:split]  # walked forward
+    chain_b = ids[split:][::-1]  # walked backwards, so both run the same way
+    tris = []
+    i = j = 0
+    na, nb = len(chain_a) - 1, len(chain_b) - 1
+    while i < na or j < nb:
+        if i < na and (j >= nb or (i + 1) / max(na, 1) <= (j + 1) / max(nb, 1)):
+            tris.append((chain_a[i], chain_a[i + 1], chain_b[j]))
+            i += 1
+        else:
+            tris.append((chain_a[i], chain_b[j + 1], chain_b[j]))
+            j += 1
+    return tris
