@@ -99,7 +99,7 @@ def slice_part(part: LoadedPart, params: SliceParams, *, progress: Progress | No
     pool = VertexPool()
     all_tris: list[tuple[int, int, int]] = []
     stats: dict = {"solids": len(part.solids), "planes": len(planes), "height_mm": height}
-    sampling_totals = {"newton_solves": 0, "edge_roots": 0, "fallbacks": 0}
+    sampling_totals = {"newton_solves": 0, "edge_roots": 0, "fallbacks": 0, "tolerance_gaps": 0, "max_gap_mm": 0.0}
     for si, mesh in enumerate(meshes):
         frac = 0.1 + 0.85 * si / len(meshes)
         t = time.perf_counter()
@@ -114,7 +114,8 @@ def slice_part(part: LoadedPart, params: SliceParams, *, progress: Progress | No
         for k, v in tstats.items():
             stats[k] = stats.get(k, 0) + v
         for k in sampling_totals:
-            sampling_totals[k] += getattr(sampler.stats, k)
+            value = getattr(sampler.stats, k)
+            sampling_totals[k] = max(sampling_totals[k], value) if k.startswith("max_") else sampling_totals[k] + value
     stats.update(sampling_totals)
 
     report("checking mesh", 0.95)
@@ -125,6 +126,12 @@ def slice_part(part: LoadedPart, params: SliceParams, *, progress: Progress | No
     ring = vertex_plane >= 0
     vertices[ring, 2] = planes.z[vertex_plane[ring]]
     check_mesh(vertices, triangles)
+    if stats["tolerance_gaps"]:
+        warnings.append(
+            f"{stats['tolerance_gaps']} ring segment(s) up to {stats['max_gap_mm']:.3g} mm long exceed the "
+            "segment budget where a plane is tangent to a nearly horizontal edge: the file's faces and edges "
+            "disagree there by their modelling tolerance, and no exact point lies between"
+        )
     warnings.extend(flat_faces_on_planes(part.solids, zmin=zmin, planes=planes))
     stats["triangles"] = len(triangles)
     stats["vertices"] = len(vertices)

@@ -2,20 +2,22 @@
 
 Two kinds of loops (see ``sections``):
 
-- *free* loops (an annulus component on both sides) are re-sampled from scratch: corners of the
-  section (where it crosses a B-rep edge, or meets a mesh node lying on the plane) are kept; between
-  two corners the section runs inside one face, and points are placed at equal arc length along the
-  topology-mesh path, then moved onto the exact level set ``z(u, v) = plane`` by Newton in that face's
-  parameter space;
-- *pinned* loops (a topology-mesh cap or branching component on a side) keep every crossing of a
-  topology-mesh edge, each solved exactly (Brent along the edge), because the kept pieces are built
-  on them.
+- *free* loops (an annulus component on both sides) are re-sampled from scratch. Corners of the
+  section (where it crosses a B-rep edge, or meets a mesh node lying on the plane) are kept, each
+  solved exactly on its edge. Between two corners the section runs inside one face: points are
+  seeded at equal arc length along the topology-mesh path and moved onto the exact level set
+  ``z(u, v) = plane`` by Newton in that face's parameter space.
+- *pinned* loops (a cap or branching component on one side) keep every crossing of a topology-mesh
+  edge, each solved exactly (Brent along the edge), because the kept pieces are built on them.
 
-In both, each segment is then checked against the exact curve: the curve point halfway along the
-segment (Newton again) must lie within ``chord_error`` of the chord, and the chord must be no longer
-than ``segment_length``; otherwise the segment is split and both halves are checked again. The
-chord test at the middle is exact for circles and, for other smooth curves, measures the sagitta
-to second order in the segment length.
+Then every segment is checked against the exact curve: the curve point halfway along it (Newton
+again) must lie within ``chord_error`` of the chord, and the chord must be no longer than
+``segment_length``; a failing segment is split and its parts checked again. The midpoint test is
+exact for circles and measures the sagitta to second order in the segment length for other smooth
+curves.
+
+All Newton solves of one loop run as one batch (numpy bookkeeping, one OCCT ``D1`` per point and
+iteration), which keeps the Python overhead per ring vertex to a few microseconds.
 """
 
 from __future__ import annotations
@@ -24,14 +26,22 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from OCP.gp import gp_Pnt, gp_Vec
 
-from worker.dst.constants import MAX_SUBDIVISION, MIN_LOOP_VERTICES, SEGMENT_FILL
+from worker.dst.constants import (
+    LEVEL_TOL_MM,
+    MAX_SUBDIVISION,
+    MIN_LOOP_VERTICES,
+    NEWTON_MAX_ITER,
+    SEGMENT_FILL,
+)
 from worker.dst.errors import TessellationError
 from worker.dst.exact import ExactFailure
 from worker.dst.sections import SectionTopology
 from worker.dst.topomesh import TopoMesh
 
-MAX_REFINE_DEPTH = 24  # halving a segment 24 times takes 1 m down to 60 nm: a curve still failing is broken
+GAP_SPAN_REL = 1e-6  # a seed interval this small (relative to its run) cannot hold another exact point
+MAX_REFINE_ROUNDS = 40  # halving a segment 24 times takes 1 m down to 60 nm: still failing means broken
 
 
 @dataclass
@@ -46,26 +56,39 @@ class VertexPool:
         self.plane.append(plane)
         return len(self.xyz) - 1
 
+    def extend(self, pts: np.ndarray, plane: int) -> list[int]:
+        start = len(self.xyz)
+        self.xyz.extend(map(tuple, pts.tolist()))
+        self.plane.extend([plane] * len(pts))
+        return list(range(start, len(self.xyz)))
+
 
 @dataclass
 class SamplingStats:
     newton_solves: int = 0
     edge_roots: int = 0
-    fallbacks: int = 0  # corner points that had to be solved on a face because the curve root failed
+    fallbacks: int = 0  # corner points solved on a face because the curve root failed
+    tolerance_gaps: int = 0  # segments kept over budget because the B-rep is inconsistent there
+    max_gap_mm: float = 0.0
+
+
+@dataclass
+class _Run:
+    """A piece of a section curve inside one face, parametrised by arc length along a seed path."""
+
+    face: int
+    s: np.ndarray  # (k,) arc length of the seed path, 0 .. length
+    uv: np.ndarray  # (k, 2) seed path in the face's (u, v)
+    max_step: float  # Newton trust region in (u, v)
+    start: int  # vertex id of the exact start point
+    end: int  # vertex id of the exact end point
+    n_seg: int  # initial number of segments
 
 
 class RingSampler:
-    """Computes and caches exact ring vertices for one solid."""
+    """Computes and caches the exact ring vertices of one solid."""
 
-    def __init__(
-        self,
-        mesh: TopoMesh,
-        topo: SectionTopology,
-        pool: VertexPool,
-        *,
-        segment_length: float,
-        chord_error: float,
-    ):
+    def __init__(self, mesh: TopoMesh, topo: SectionTopology, pool: VertexPool, *, segment_length: float, chord_error: float):
         self.mesh, self.topo, self.pool = mesh, topo, pool
         self.seg_len = segment_length
         self.chord = chord_error
@@ -74,12 +97,12 @@ class RingSampler:
         self.cross_vid: dict[int, int] = {}
         self.subdiv: dict[int, list[int]] = {}  # start crossing of a pinned segment -> inner vertex ids
         self._edge_param: dict[tuple[int, int], float] = {}
-        # (u, v) scale of each triangle: Newton's trust region and the size of a "local" step
+        self._ads = [f.ad for f in mesh.faces]
         uv = mesh.tri_uv
+        # (u, v) size of each topology triangle: the scale of a Newton step from a seed
         self.tri_uv_scale = np.max(np.linalg.norm(uv - np.roll(uv, 1, axis=1), axis=2), axis=1) + 1e-12
-        self.tri_corner_edge = {}
 
-    # --- vertices shared with the kept topology-mesh pieces -------------------------------------------
+    # --- single exact vertices ---------------------------------------------------------------------
     def node(self, n: int) -> int:
         vid = self.node_vid.get(n)
         if vid is None:
@@ -118,23 +141,23 @@ class RingSampler:
             except ExactFailure:
                 self.stats.fallbacks += 1
         t = int(topo.edge_tris[e, 0])
-        ka, kb = self._corners(t, a, b)
-        ua, va = mesh.tri_uv[t, ka]
-        ub, vb = mesh.tri_uv[t, kb]
-        x, y, z, _, _ = mesh.faces[int(mesh.tri_face[t])].root_on_uv_segment(ua, va, ub, vb, zc)
+        row = mesh.tris[t].tolist()
+        ua, va = mesh.tri_uv[t, row.index(a)]
+        ub, vb = mesh.tri_uv[t, row.index(b)]
+        x, y, _, _, _ = mesh.faces[int(mesh.tri_face[t])].root_on_uv_segment(ua, va, ub, vb, zc)
         return x, y, zc
 
     def _root_on_brep_edge(self, ei: int, a: int, b: int, zc: float) -> tuple[float, float, float]:
         ev = self.mesh.edges[ei]
         sa, sb = self._param(ei, a), self._param(ei, b)
-        span = ev.s1 - ev.s0
-        if abs(sa - sb) > 0.5 * span:
-            # A node at the closing vertex of a closed curve projects to either end: take the end
-            # on the side of the other node.
-            if abs(sa - ev.s0) < abs(sa - ev.s1):
-                sa = ev.s1 if sb > 0.5 * (ev.s0 + ev.s1) else sa
-            if abs(sb - ev.s0) < abs(sb - ev.s1):
-                sb = ev.s1 if sa > 0.5 * (ev.s0 + ev.s1) else sb
+        if abs(sa - sb) > 0.5 * (ev.s1 - ev.s0):
+            # A node at the closing vertex of a closed curve projects to either end: use the end on
+            # the other node's side.
+            mid = 0.5 * (ev.s0 + ev.s1)
+            if min(abs(sa - ev.s0), abs(sa - ev.s1)) < min(abs(sb - ev.s0), abs(sb - ev.s1)):
+                sa = ev.s1 if sb > mid else ev.s0
+            else:
+                sb = ev.s1 if sa > mid else ev.s0
         x, y, _ = ev.root(min(sa, sb), max(sa, sb), zc)
         return x, y, zc
 
@@ -146,183 +169,227 @@ class RingSampler:
             self._edge_param[key] = s
         return s
 
-    def _corners(self, t: int, a: int, b: int) -> tuple[int, int]:
-        row = self.mesh.tris[t].tolist()
-        return row.index(a), row.index(b)
-
-    # --- approximate geometry of a crossing inside one triangle ---------------------------------------
-    def _approx(self, c: int, t: int) -> tuple[np.ndarray, np.ndarray]:
-        """(xyz, uv) of crossing ``c`` by linear interpolation along its edge inside triangle ``t``."""
-        topo, mesh = self.topo, self.mesh
-        e = int(topo.cross_edge[c])
-        a, b = (int(x) for x in topo.edges[e])
-        if topo.z[a] > topo.z[b]:
-            a, b = b, a
-        zc = topo.planes[int(topo.cross_plane[c])]
-        za, zb = topo.z[a], topo.z[b]
-        s = (zc - za) / (zb - za)
-        ka, kb = self._corners(t, a, b)
-        xyz = mesh.xyz[a] + s * (mesh.xyz[b] - mesh.xyz[a])
-        uv = mesh.tri_uv[t, ka] + s * (mesh.tri_uv[t, kb] - mesh.tri_uv[t, ka])
-        return xyz, uv
-
-    def _is_corner(self, c: int) -> bool:
-        topo = self.topo
-        if topo.cross_node[c] >= 0:
-            return True
-        a, b = (int(x) for x in topo.edges[int(topo.cross_edge[c])])
-        return (a, b) in self.mesh.edge_of
-
-    # --- free loops: resample between corners -----------------------------------------------------------
+    # --- loops -------------------------------------------------------------------------------------
     def free_loop(self, li: int) -> list[int]:
-        j, cross = self.topo.loops[li]
-        zc = float(self.topo.planes[j])
+        """Re-sampled ring of a free loop: corners kept, budget-driven points between them."""
+        topo = self.topo
+        j, cross = topo.loops[li]
+        zc = float(topo.planes[j])
+        n = len(cross)
+        seg_tri = topo.seg_tri[cross]
+        faces = self.mesh.tri_face[seg_tri]
+        corner = topo.cross_is_corner[cross] | (faces != np.roll(faces, 1))
+        starts = np.flatnonzero(corner).tolist() or [0]
+        for min_seg in (1, MIN_LOOP_VERTICES):
+            runs = []
+            for r, i0 in enumerate(starts):
+                i1 = starts[(r + 1) % len(starts)]
+                count = (i1 - i0) % n or n
+                idx = (i0 + np.arange(count + 1)) % n
+                cs = cross[idx]
+                pts = topo.cross_xyz[cs].copy()
+                uv = np.vstack([topo.cross_uv_start[cs[:-1]], topo.cross_uv_end[cs[-2:-1]]])
+                start, end = self.crossing(int(cs[0])), self.crossing(int(cs[-1]))
+                pts[0], pts[-1] = self.pool.xyz[start], self.pool.xyz[end]
+                s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+                n_seg = max(min_seg if len(starts) == 1 else 1, math.ceil(s[-1] / (self.seg_len * SEGMENT_FILL)))
+                runs.append(_Run(int(faces[i0]), s, uv, 2.0 * float(self.tri_uv_scale[seg_tri[idx[:-1]]].max()), start, end, n_seg))
+            ring = [v for run_pts in self._sample_runs(runs, j, zc) for v in run_pts[:-1]]
+            ring = _dedupe_cyclic(ring, self.pool)
+            if len(ring) >= MIN_LOOP_VERTICES:
+                return ring
+        raise TessellationError(f"a section loop at z={zc:.4f} mm collapses to fewer than 3 points")
+
+    def pinned_loop(self, li: int) -> list[int]:
+        """Ring of a pinned loop: every topology crossing, plus points where a segment breaks the budget."""
+        topo = self.topo
+        j, cross = topo.loops[li]
+        zc = float(topo.planes[j])
         cl = cross.tolist()
-        n = len(cl)
-        tris_ = [int(self.topo.seg_tri[c]) for c in cl]
-        faces_ = [int(self.mesh.tri_face[t]) for t in tris_]
-        corner = [self._is_corner(cl[i]) or faces_[i] != faces_[i - 1] for i in range(n)]
-        starts = [i for i in range(n) if corner[i]] or [0]
+        todo = [c for c in cl if c not in self.subdiv]
+        runs = []
+        for c in todo:
+            nxt = int(topo.succ[c])
+            start, end = self.crossing(c), self.crossing(nxt)
+            d = float(np.linalg.norm(np.subtract(self.pool.xyz[end], self.pool.xyz[start])))
+            uv = np.stack([topo.cross_uv_start[c], topo.cross_uv_end[c]])
+            t = int(topo.seg_tri[c])
+            runs.append(_Run(int(self.mesh.tri_face[t]), np.array([0.0, d]), uv, 2.0 * float(self.tri_uv_scale[t]), start, end, 1))
+        for c, run_pts in zip(todo, self._sample_runs(runs, j, zc), strict=True):
+            self.subdiv[c] = run_pts[1:-1]
         out: list[int] = []
-        for r, i0 in enumerate(starts):
-            i1 = starts[(r + 1) % len(starts)]
-            count = (i1 - i0) % n or n
-            out.extend(self._sample_run(cl, tris_, i0, count, j, zc, faces_[i0]))
-        if len(out) < MIN_LOOP_VERTICES:
-            # A tiny loop (a dome just below its top): sample it as a whole with three points.
-            out = self._sample_run(cl, tris_, starts[0], n, j, zc, faces_[starts[0]], min_segments=3)
+        for c in cl:
+            out.append(self.crossing(c))
+            out.extend(self.subdiv[c])
         return _dedupe_cyclic(out, self.pool)
 
-    def _sample_run(
-        self, cl, tris_, i0: int, count: int, j: int, zc: float, face: int, min_segments: int = 1
-    ) -> list[int]:
-        """Vertices of the run from crossing ``cl[i0]`` over ``count`` segments (start included, end not)."""
-        n = len(cl)
-        pts = np.empty((count + 1, 3))
-        uvs = np.empty((count + 1, 2))
-        scale = 0.0
-        for k in range(count):
-            i = (i0 + k) % n
-            t = tris_[i]
-            pts[k], uvs[k] = self._approx(cl[i], t)
-            if k == count - 1:
-                pts[k + 1], uvs[k + 1] = self._approx(cl[(i + 1) % n], t)
-            scale = max(scale, float(self.tri_uv_scale[t]))
-        start_vid = self.crossing(cl[i0])
-        end_vid = self.crossing(cl[(i0 + count) % n])
-        pts[0] = self.pool.xyz[start_vid]
-        pts[-1] = self.pool.xyz[end_vid]
-        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
-        run = _Run(self, face, zc, j, s, uvs, 2.0 * scale)
-        n_seg = max(min_segments, math.ceil(s[-1] / (self.seg_len * SEGMENT_FILL)))
-        seeds = [(0.0, start_vid)]
-        for k in range(1, n_seg):
-            sk = s[-1] * k / n_seg
-            seeds.append((sk, run.solve(sk)))
-        seeds.append((float(s[-1]), end_vid))
-        refined = run.refine(seeds)
-        return [vid for _, vid in refined[:-1]]
+    def pinned_segment(self, c: int) -> list[int]:
+        """Inner vertices of the pinned segment starting at crossing ``c`` (after ``pinned_loop``)."""
+        return self.subdiv[c]
 
-    # --- pinned loops: every crossing, plus points where a segment breaks the budget -----------------
-    def pinned_loop(self, li: int) -> list[int]:
-        j, cross = self.topo.loops[li]
-        zc = float(self.topo.planes[j])
-        cl = cross.tolist()
-        out: list[int] = []
-        for i, c in enumerate(cl):
-            out.append(self.crossing(c))
-            out.extend(self.pinned_segment(c, cl[(i + 1) % len(cl)], j, zc))
+    # --- the batched sampler -------------------------------------------------------------------------
+    def _sample_runs(self, runs: list[_Run], plane: int, zc: float) -> list[list[int]]:
+        """Vertex ids of each run from start to end inclusive, within the length and chord budgets."""
+        if not runs:
+            return []
+        # All runs' seed paths in one array, each shifted past the previous, so that one np.interp
+        # call seeds every point of every run.
+        lengths = np.array([r.s[-1] for r in runs])
+        shift = np.concatenate([[0.0], np.cumsum(lengths + 1.0)[:-1]])
+        big_s = np.concatenate([r.s + sh for r, sh in zip(runs, shift, strict=True)])
+        big_u = np.concatenate([r.uv[:, 0] for r in runs])
+        big_v = np.concatenate([r.uv[:, 1] for r in runs])
+        run_face = np.array([r.face for r in runs])
+        run_step = np.array([r.max_step for r in runs])
+
+        def solve(run_idx: np.ndarray, s: np.ndarray) -> np.ndarray:
+            g = s + shift[run_idx]
+            u, v = np.interp(g, big_s, big_u), np.interp(g, big_s, big_v)
+            return self._newton(run_face[run_idx], u, v, zc, run_step[run_idx])
+
+        # Initial points at equal arc length.
+        run_of, s_of = [], []
+        for ri, r in enumerate(runs):
+            if r.n_seg > 1:
+                k = np.arange(1, r.n_seg)
+                run_of.append(np.full(len(k), ri))
+                s_of.append(r.s[-1] * k / r.n_seg)
+        pts: list[list[tuple[float, np.ndarray | None, int]]] = [
+            [(0.0, np.array(self.pool.xyz[r.start]), r.start)] for r in runs
+        ]
+        if run_of:
+            ri_all, s_all = np.concatenate(run_of), np.concatenate(s_of)
+            xyz = solve(ri_all, s_all)
+            for ri, s, p in zip(ri_all.tolist(), s_all.tolist(), xyz, strict=True):
+                pts[ri].append((s, p, -1))
+        for ri, r in enumerate(runs):
+            pts[ri].append((float(r.s[-1]), np.array(self.pool.xyz[r.end]), r.end))
+
+        # Segments to check: (run, sa, pa, sb, pb); refined level by level, all runs together.
+        pending = [(ri, a[0], a[1], b[0], b[1]) for ri, p in enumerate(pts) for a, b in zip(p[:-1], p[1:], strict=True)]
+        L, e = self.seg_len, self.chord
+        worst = ""
+        for _ in range(MAX_REFINE_ROUNDS):
+            if not pending:
+                break
+            ri = np.array([q[0] for q in pending])
+            sa = np.array([q[1] for q in pending])
+            sb = np.array([q[3] for q in pending])
+            pa = np.array([q[2] for q in pending])
+            pb = np.array([q[4] for q in pending])
+            mid = solve(ri, 0.5 * (sa + sb))
+            length = np.linalg.norm(pb - pa, axis=1)
+            sag = _point_segment_distance(mid, pa, pb)
+            bad = ((length > L) | (sag > e)) & (length > 1e-9)
+            # A segment whose seed interval has collapsed but which stays long bridges a gap in the
+            # B-rep itself: near a plane tangent to a nearly horizontal edge, the face's level set and
+            # the edge curve (equal only to the file's tolerance) cross the plane apart. No exact point
+            # lies between; keep the segment and report it.
+            gap = bad & ((sb - sa) < GAP_SPAN_REL * np.maximum(lengths[ri], 1.0))
+            if gap.any():
+                self.stats.tolerance_gaps += int(gap.sum())
+                self.stats.max_gap_mm = max(self.stats.max_gap_mm, float(length[gap].max()))
+                bad &= ~gap
+            if not bad.any():
+                break
+            q = int(np.argmax(np.where(bad, sag, -1.0)))
+            worst = (f" (face {run_face[ri[q]] + 1}: sag {sag[q]:.3g} mm over {length[q]:.3g} mm, "
+                     f"s {sa[q]:.6g}..{sb[q]:.6g} of {lengths[ri[q]]:.6g})")
+            m = np.maximum.reduce([
+                np.full(len(pending), 2),
+                np.ceil(length / (L * SEGMENT_FILL)).astype(int),
+                np.ceil(np.sqrt(sag / e) * 1.05).astype(int),
+            ])
+            m = np.minimum(m, MAX_SUBDIVISION)
+            b_idx = np.flatnonzero(bad)
+            new_run, new_s = [], []
+            for q in b_idx.tolist():
+                k = np.arange(1, m[q])
+                new_run.append(np.full(len(k), ri[q]))
+                new_s.append(sa[q] + (sb[q] - sa[q]) * k / m[q])
+            nr, ns = np.concatenate(new_run), np.concatenate(new_s)
+            new_xyz = solve(nr, ns)
+            for r_, s_, p_ in zip(nr.tolist(), ns.tolist(), new_xyz, strict=True):
+                pts[r_].append((s_, p_, -1))
+            nxt = []
+            pos = 0
+            for q in b_idx.tolist():
+                chain = [(sa[q], pa[q])]
+                for _k in range(m[q] - 1):
+                    chain.append((ns[pos], new_xyz[pos]))
+                    pos += 1
+                chain.append((sb[q], pb[q]))
+                nxt.extend((ri[q], x[0], x[1], y[0], y[1]) for x, y in zip(chain[:-1], chain[1:], strict=True))
+            pending = nxt
+        else:
+            raise TessellationError(f"section curves at z={zc:.4f} mm cannot meet the chord budget{worst}")
+
+        out = []
+        for p in pts:
+            p.sort(key=lambda item: item[0])
+            ids = []
+            for _s, xyz, vid in p:
+                ids.append(vid if vid >= 0 else self.pool.add((float(xyz[0]), float(xyz[1]), zc), plane))
+            out.append(ids)
         return out
 
-    def pinned_segment(self, c: int, c_next: int, j: int, zc: float) -> list[int]:
-        """Inner vertices of the segment from crossing ``c`` to ``c_next`` (cached by ``c``)."""
-        got = self.subdiv.get(c)
-        if got is not None:
-            return got
-        t = int(self.topo.seg_tri[c])
-        va, vb = self.crossing(c), self.crossing(c_next)
-        inner: list[int] = []
-        if va != vb:
-            _, uva = self._approx(c, t) if self.topo.cross_node[c] < 0 else self._node_uv(c, t)
-            _, uvb = self._approx(c_next, t) if self.topo.cross_node[c_next] < 0 else self._node_uv(c_next, t)
-            pa, pb = np.array(self.pool.xyz[va]), np.array(self.pool.xyz[vb])
-            d = float(np.linalg.norm(pb - pa))
-            run = _Run(
-                self,
-                int(self.mesh.tri_face[t]),
-                zc,
-                j,
-                np.array([0.0, d]),
-                np.stack([uva, uvb]),
-                2.0 * float(self.tri_uv_scale[t]),
-            )
-            refined = run.refine([(0.0, va), (d, vb)])
-            inner = [vid for _, vid in refined[1:-1]]
-        self.subdiv[c] = inner
-        return inner
+    def _newton(self, fidx: np.ndarray, u: np.ndarray, v: np.ndarray, zc: float, max_step: np.ndarray) -> np.ndarray:
+        """Batched Newton on ``z(u, v) = zc``, each point in its own face. Returns (n, 3) exact points.
 
-    def _node_uv(self, c: int, t: int) -> tuple[np.ndarray, np.ndarray]:
-        node = int(self.topo.cross_node[c])
-        k = self.mesh.tris[t].tolist().index(node)
-        return self.mesh.xyz[node], self.mesh.tri_uv[t, k]
-
-
-class _Run:
-    """A piece of a section curve inside one face, parametrised by arc length ``s`` along a seed path."""
-
-    def __init__(self, sampler: RingSampler, face: int, zc: float, plane: int, s, uvs, max_step: float):
-        self.sp = sampler
-        self.face = sampler.mesh.faces[face]
-        self.zc, self.plane = zc, plane
-        self.s, self.uvs = s, uvs
-        self.max_step = max_step
-
-    def _solve_xyz(self, sk: float) -> tuple[float, float, float]:
-        u = float(np.interp(sk, self.s, self.uvs[:, 0]))
-        v = float(np.interp(sk, self.s, self.uvs[:, 1]))
-        self.sp.stats.newton_solves += 1
-        try:
-            x, y, _, _, _ = self.face.level_point(u, v, self.zc, self.max_step)
-        except ExactFailure as exc:
-            raise TessellationError(f"no exact section point near z={self.zc:.4f} mm: {exc}") from None
-        return x, y, self.zc
-
-    def solve(self, sk: float) -> int:
-        return self.sp.pool.add(self._solve_xyz(sk), self.plane)
-
-    def refine(self, pts: list[tuple[float, int]]) -> list[tuple[float, int]]:
-        """Split segments until each is within the length and chord budgets (checked at midpoints)."""
-        pool = self.sp.pool
-        L, e = self.sp.seg_len, self.sp.chord
-        out = [pts[0]]
-        stack = [(pts[i], pts[i + 1], 0) for i in range(len(pts) - 2, -1, -1)]
-        while stack:
-            (sa, va), (sb, vb), depth = stack.pop()
-            a, b = np.array(pool.xyz[va]), np.array(pool.xyz[vb])
-            length = float(np.linalg.norm(b - a))
-            mid = np.array(self._solve_xyz(0.5 * (sa + sb)))
-            sag = _point_segment_distance(mid, a, b)
-            if (length <= L and sag <= e) or length < 1e-9:
-                out.append((sb, vb))
-                continue
-            if depth >= MAX_REFINE_DEPTH:
-                raise TessellationError(
-                    f"section curve at z={self.zc:.4f} mm cannot meet the chord budget (sag {sag:.3g} mm)"
-                )
-            m = max(2, math.ceil(length / (L * SEGMENT_FILL)), math.ceil(math.sqrt(sag / e) * 1.05))
-            m = min(m, MAX_SUBDIVISION)
-            new = [(sa, va)] + [(sa + (sb - sa) * i / m, self.solve(sa + (sb - sa) * i / m)) for i in range(1, m)]
-            new.append((sb, vb))
-            for i in range(len(new) - 2, -1, -1):
-                stack.append((new[i], new[i + 1], depth + 1))
-        return out
+        Each step is the smallest move *in 3D* that fixes z to first order: along the surface
+        gradient of z, ``d(u, v) = -f G^-1 grad z / (grad z . G^-1 grad z)`` with G the first
+        fundamental form. A plain (u, v) gradient step would depend on how the face is parametrised
+        (u in [0, 1] and v in millimetres is common) and can wander along the curve.
+        """
+        n = len(u)
+        self.stats.newton_solves += n
+        out = np.empty((n, 3))
+        act = np.arange(n)
+        u, v = u.astype(np.float64).copy(), v.astype(np.float64).copy()
+        p, du, dv = gp_Pnt(), gp_Vec(), gp_Vec()
+        ads = self._ads
+        for _ in range(NEWTON_MAX_ITER):
+            rows = []
+            for f, uu, vv in zip(fidx[act].tolist(), u[act].tolist(), v[act].tolist(), strict=True):
+                ads[f].D1(uu, vv, p, du, dv)
+                rows.append((p.X(), p.Y(), p.Z(), du.X(), du.Y(), du.Z(), dv.X(), dv.Y(), dv.Z()))
+            res = np.array(rows).reshape(-1, 9)
+            f_ = res[:, 2] - zc
+            done = np.abs(f_) < LEVEL_TOL_MM
+            out[act[done]] = res[done, :3]
+            keep = ~done
+            act, res, f_ = act[keep], res[keep], f_[keep]
+            if not act.size:
+                return out
+            su_, sv_ = res[:, 3:6], res[:, 6:9]
+            e_ = np.einsum("ij,ij->i", su_, su_)
+            f2 = np.einsum("ij,ij->i", su_, sv_)
+            g_ = np.einsum("ij,ij->i", sv_, sv_)
+            zu, zv = su_[:, 2], sv_[:, 2]
+            det = e_ * g_ - f2 * f2
+            wu, wv = g_ * zu - f2 * zv, e_ * zv - f2 * zu  # det * G^-1 grad z
+            denom = zu * wu + zv * wv  # det * (grad z . G^-1 grad z)
+            ok = (det > 0) & (denom > 0)
+            if not ok.all():
+                break
+            su, sv = -f_ * wu / denom, -f_ * wv / denom
+            norm = np.hypot(su, sv)
+            scale = np.minimum(1.0, max_step[act] / np.where(norm > 0, norm, 1.0))
+            u[act] += su * scale
+            v[act] += sv * scale
+        raise TessellationError(
+            f"Newton found no exact section point near z={zc:.4f} mm for {act.size} seed(s) "
+            "(a face is flat or degenerate there)"
+        )
 
 
-def _point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+def _point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise distance (mm) from points ``p`` to segments ``a``-``b``; all (n, 3)."""
     ab = b - a
-    denom = float(ab @ ab)
-    t = 0.0 if denom == 0.0 else min(1.0, max(0.0, float((p - a) @ ab) / denom))
-    return float(np.linalg.norm(p - (a + t * ab)))
+    denom = np.einsum("ij,ij->i", ab, ab)
+    t = np.einsum("ij,ij->i", p - a, ab) / np.where(denom > 0, denom, 1.0)
+    t = np.clip(t, 0.0, 1.0)
+    return np.linalg.norm(p - (a + t[:, None] * ab), axis=1)
 
 
 def _dedupe_cyclic(vids: list[int], pool: VertexPool) -> list[int]:

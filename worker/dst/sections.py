@@ -74,6 +74,10 @@ class SectionTopology:
     comp_is_annulus: np.ndarray
     comp_bottom: list[list[int]]
     comp_top: list[list[int]]
+    cross_xyz: np.ndarray
+    cross_uv_start: np.ndarray
+    cross_uv_end: np.ndarray
+    cross_is_corner: np.ndarray
 
     def crossing_id(self, edge: int, plane: int) -> int:
         return int(self.cross_off[edge] + plane - self.edge_lo[edge])
@@ -182,6 +186,20 @@ def cut_topology(mesh: TopoMesh, planes: np.ndarray, *, on_plane_tol: float) -> 
     n_top = np.array([len(t) for t in comp_top])
     comp_is_annulus = (n_bottom == 1) & (n_top == 1) & (euler == 0)
 
+    # --- seeds: linear interpolation along each crossing's edge, in the segment triangle's (u, v) ------
+    zc = planes[cross_plane] if n_cross else np.zeros(0)
+    lower = np.where(s_a >= s_b, edges[:, 1], edges[:, 0])[cross_edge]
+    upper_n = up_node
+    frac = (zc - z[lower]) / (z[upper_n] - z[lower]) if n_cross else np.zeros(0)
+    cross_xyz = mesh.xyz[lower] + frac[:, None] * (mesh.xyz[upper_n] - mesh.xyz[lower])
+    cross_xyz[:, 2] = zc
+    # the segment starting at crossing c lies in triangle seg_tri[c]; both of its ends are seeded there
+    cross_uv_start = _uv_in_tri(mesh, seg_tri, lower, upper_n, frac)
+    cross_uv_end = _uv_in_tri(mesh, seg_tri, lower[succ], upper_n[succ], frac[succ])
+    brep_keys = np.array([a * n + b for a, b in mesh.edge_of], dtype=np.int64)
+    edge_is_brep = np.isin(keys, brep_keys)
+    cross_is_corner = edge_is_brep[cross_edge] | (cross_node >= 0)
+
     return SectionTopology(
         z=z,
         slab=slab,
@@ -207,7 +225,23 @@ def cut_topology(mesh: TopoMesh, planes: np.ndarray, *, on_plane_tol: float) -> 
         comp_is_annulus=comp_is_annulus,
         comp_bottom=comp_bottom,
         comp_top=comp_top,
+        cross_xyz=cross_xyz,
+        cross_uv_start=cross_uv_start,
+        cross_uv_end=cross_uv_end,
+        cross_is_corner=cross_is_corner,
     )
+
+
+def _uv_in_tri(mesh: TopoMesh, t: np.ndarray, lower, upper, frac) -> np.ndarray:
+    """(u, v) in triangle ``t[i]`` of the point at fraction ``frac[i]`` from node ``lower[i]`` to ``upper[i]``."""
+    if len(t) == 0:
+        return np.zeros((0, 2))
+    tri_nodes = mesh.tris[t]
+    k_lo = np.argmax(tri_nodes == lower[:, None], axis=1)
+    k_up = np.argmax(tri_nodes == upper[:, None], axis=1)
+    uv_lo = mesh.tri_uv[t, k_lo]
+    uv_up = mesh.tri_uv[t, k_up]
+    return uv_lo + frac[:, None] * (uv_up - uv_lo)
 
 
 def _walk_loops(succ: np.ndarray, cross_plane: np.ndarray) -> list[tuple[int, np.ndarray]]:

@@ -47,6 +47,10 @@ def tessellate_solid(sampler: RingSampler) -> tuple[list[tuple[int, int, int]], 
             out.append((a, b, c))
         for t, k in zip(tri_of[~whole].tolist(), slab_of[~whole].tolist(), strict=True):
             out.extend(_piece_triangles(sampler, t, k))
+    # A ring that degenerates to one point (a dome top exactly on a plane) makes zipper triangles with
+    # a repeated corner. Such a triangle adds the edges a->b and b->a, which cancel: dropping it keeps
+    # the mesh closed.
+    out = [t for t in out if t[0] != t[1] and t[1] != t[2] and t[2] != t[0]]
     stats = {
         "loops": len(topo.loops),
         "free_loops": int(free.sum()),
@@ -121,11 +125,10 @@ def _piece_triangles(sampler: RingSampler, t: int, k: int) -> list[tuple[int, in
         if c0 < 0 or c1 < 0 or topo.cross_plane[c0] != topo.cross_plane[c1]:
             continue
         j = int(topo.cross_plane[c0])
-        zc = float(topo.planes[j])
         if topo.succ[c0] == c1 and topo.seg_tri[c0] == t:
-            inner = sampler.pinned_segment(c0, c1, j, zc)
+            inner = sampler.pinned_segment(c0)
         elif topo.succ[c1] == c0 and topo.seg_tri[c1] == t:
-            inner = sampler.pinned_segment(c1, c0, j, zc)[::-1]
+            inner = sampler.pinned_segment(c1)[::-1]
         else:
             continue
         full.extend((v, f"p{j}") for v in inner)
