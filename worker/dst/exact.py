@@ -120,11 +120,13 @@ class FaceEval:
 class EdgeEval:
     """An edge's 3D curve (location applied) for corner points of the sections."""
 
-    __slots__ = ("ad", "s0", "s1")
+    __slots__ = ("ad", "s0", "s1", "closed")
 
     def __init__(self, adaptor: BRepAdaptor_Curve):
         self.ad = adaptor
         self.s0, self.s1 = adaptor.FirstParameter(), adaptor.LastParameter()
+        # closed: its two ends are one point, so a node there has two parameters
+        self.closed = adaptor.Value(self.s0).Distance(adaptor.Value(self.s1)) < 1e-7
 
     def parameter_of(self, xyz: tuple[float, float, float]) -> float:
         """The curve parameter of the point nearest ``xyz`` (a topology-mesh node on this edge)."""

@@ -99,7 +99,8 @@ def slice_part(part: LoadedPart, params: SliceParams, *, progress: Progress | No
     pool = VertexPool()
     all_tris: list[tuple[int, int, int]] = []
     stats: dict = {"solids": len(part.solids), "planes": len(planes), "height_mm": height}
-    sampling_totals = {"newton_solves": 0, "edge_roots": 0, "fallbacks": 0, "tolerance_gaps": 0, "max_gap_mm": 0.0}
+    sampling_totals = {"newton_solves": 0, "edge_roots": 0, "fallbacks": 0, "tolerance_gaps": 0, "max_gap_mm": 0.0,
+                       "tangent_segments": 0, "newton_failures": 0}
     for si, mesh in enumerate(meshes):
         frac = 0.1 + 0.85 * si / len(meshes)
         t = time.perf_counter()
@@ -126,6 +127,11 @@ def slice_part(part: LoadedPart, params: SliceParams, *, progress: Progress | No
     ring = vertex_plane >= 0
     vertices[ring, 2] = planes.z[vertex_plane[ring]]
     check_mesh(vertices, triangles)
+    if stats["tangent_segments"]:
+        warnings.append(
+            f"{stats['tangent_segments']} ring segment(s) are kept over budget where a plane is tangent to "
+            "the surface (the section there degenerates to a line or a point)"
+        )
     if stats["tolerance_gaps"]:
         warnings.append(
             f"{stats['tolerance_gaps']} ring segment(s) up to {stats['max_gap_mm']:.3g} mm long exceed the "

@@ -69,6 +69,8 @@ class SamplingStats:
     edge_roots: int = 0
     fallbacks: int = 0  # corner points solved on a face because the curve root failed
     tolerance_gaps: int = 0  # segments kept over budget because the B-rep is inconsistent there
+    tangent_segments: int = 0  # segments kept over budget where the plane is tangent to the surface
+    newton_failures: int = 0  # seeds with no exact point (dropped; see tangent_segments)
     max_gap_mm: float = 0.0
 
 
@@ -96,6 +98,9 @@ class RingSampler:
         self.node_vid: dict[int, int] = {}
         self.cross_vid: dict[int, int] = {}
         self.subdiv: dict[int, list[int]] = {}  # start crossing of a pinned segment -> inner vertex ids
+        # topology edges lying in a plane (both ends are nodes on it) whose ring segment was
+        # subdivided: (a, b) with a < b -> inner vertex ids from a to b
+        self.edge_subdiv: dict[tuple[int, int], list[int]] = {}
         self._edge_param: dict[tuple[int, int], float] = {}
         self._ads = [f.ad for f in mesh.faces]
         uv = mesh.tri_uv
@@ -144,13 +149,26 @@ class RingSampler:
         row = mesh.tris[t].tolist()
         ua, va = mesh.tri_uv[t, row.index(a)]
         ub, vb = mesh.tri_uv[t, row.index(b)]
-        x, y, _, _, _ = mesh.faces[int(mesh.tri_face[t])].root_on_uv_segment(ua, va, ub, vb, zc)
+        face = int(mesh.tri_face[t])
+        try:
+            x, y, _, _, _ = mesh.faces[face].root_on_uv_segment(ua, va, ub, vb, zc)
+        except ExactFailure:
+            # The surface at a node's (u, v) can differ from the node (an edge point) by the file's
+            # tolerance, so a plane that close to a node is not bracketed: Newton from the seed.
+            self.stats.fallbacks += 1
+            za, zb = mesh.xyz[a, 2], mesh.xyz[b, 2]
+            frac = min(1.0, max(0.0, (zc - za) / (zb - za))) if zb != za else 0.5
+            seed = np.array([[ua + frac * (ub - ua), va + frac * (vb - va)]])
+            pts, ok = self._newton(np.array([face]), seed[:, 0], seed[:, 1], zc, np.array([2.0 * self.tri_uv_scale[t]]))
+            if not ok[0]:
+                raise TessellationError(f"no exact point of face {face + 1} at z={zc:.4f} mm near a topology edge")
+            x, y, _ = pts[0]
         return x, y, zc
 
     def _root_on_brep_edge(self, ei: int, a: int, b: int, zc: float) -> tuple[float, float, float]:
         ev = self.mesh.edges[ei]
         sa, sb = self._param(ei, a), self._param(ei, b)
-        if abs(sa - sb) > 0.5 * (ev.s1 - ev.s0):
+        if ev.closed and abs(sa - sb) > 0.5 * (ev.s1 - ev.s0):
             # A node at the closing vertex of a closed curve projects to either end: use the end on
             # the other node's side.
             mid = 0.5 * (ev.s0 + ev.s1)
@@ -216,7 +234,11 @@ class RingSampler:
             t = int(topo.seg_tri[c])
             runs.append(_Run(int(self.mesh.tri_face[t]), np.array([0.0, d]), uv, 2.0 * float(self.tri_uv_scale[t]), start, end, 1))
         for c, run_pts in zip(todo, self._sample_runs(runs, j, zc), strict=True):
-            self.subdiv[c] = run_pts[1:-1]
+            inner = run_pts[1:-1]
+            self.subdiv[c] = inner
+            na, nb = int(topo.cross_node[c]), int(topo.cross_node[topo.succ[c]])
+            if inner and na >= 0 and nb >= 0 and na != nb:
+                self.edge_subdiv[(na, nb) if na < nb else (nb, na)] = inner if na < nb else inner[::-1]
         out: list[int] = []
         for c in cl:
             out.append(self.crossing(c))
@@ -259,9 +281,11 @@ class RingSampler:
         ]
         if run_of:
             ri_all, s_all = np.concatenate(run_of), np.concatenate(s_of)
-            xyz = solve(ri_all, s_all)
-            for ri, s, p in zip(ri_all.tolist(), s_all.tolist(), xyz, strict=True):
+            xyz, ok = solve(ri_all, s_all)
+            for ri, s, p in zip(ri_all[ok].tolist(), s_all[ok].tolist(), xyz[ok], strict=True):
                 pts[ri].append((s, p, -1))
+        for p in pts:
+            p.sort(key=lambda item: item[0])
         for ri, r in enumerate(runs):
             pts[ri].append((float(r.s[-1]), np.array(self.pool.xyz[r.end]), r.end))
 
@@ -277,10 +301,16 @@ class RingSampler:
             sb = np.array([q[3] for q in pending])
             pa = np.array([q[2] for q in pending])
             pb = np.array([q[4] for q in pending])
-            mid = solve(ri, 0.5 * (sa + sb))
+            mid, mid_ok = solve(ri, 0.5 * (sa + sb))
             length = np.linalg.norm(pb - pa, axis=1)
-            sag = _point_segment_distance(mid, pa, pb)
+            sag = np.where(mid_ok, _point_segment_distance(np.nan_to_num(mid), pa, pb), 0.0)
             bad = ((length > L) | (sag > e)) & (length > 1e-9)
+            # No exact point halfway: the plane is tangent to the surface along this segment (the
+            # section degenerates to a line or a point there). Keep the segment, count it.
+            tangent = bad & ~mid_ok
+            if tangent.any():
+                self.stats.tangent_segments += int(tangent.sum())
+                bad &= ~tangent
             # A segment whose seed interval has collapsed but which stays long bridges a gap in the
             # B-rep itself: near a plane tangent to a nearly horizontal edge, the face's level set and
             # the edge curve (equal only to the file's tolerance) cross the plane apart. No exact point
@@ -308,17 +338,21 @@ class RingSampler:
                 new_run.append(np.full(len(k), ri[q]))
                 new_s.append(sa[q] + (sb[q] - sa[q]) * k / m[q])
             nr, ns = np.concatenate(new_run), np.concatenate(new_s)
-            new_xyz = solve(nr, ns)
-            for r_, s_, p_ in zip(nr.tolist(), ns.tolist(), new_xyz, strict=True):
+            new_xyz, new_ok = solve(nr, ns)
+            for r_, s_, p_ in zip(nr[new_ok].tolist(), ns[new_ok].tolist(), new_xyz[new_ok], strict=True):
                 pts[r_].append((s_, p_, -1))
             nxt = []
             pos = 0
             for q in b_idx.tolist():
                 chain = [(sa[q], pa[q])]
                 for _k in range(m[q] - 1):
-                    chain.append((ns[pos], new_xyz[pos]))
+                    if new_ok[pos]:
+                        chain.append((ns[pos], new_xyz[pos]))
                     pos += 1
                 chain.append((sb[q], pb[q]))
+                if len(chain) == 2:  # no new point could be placed: keep it as a tangent segment
+                    self.stats.tangent_segments += 1
+                    continue
                 nxt.extend((ri[q], x[0], x[1], y[0], y[1]) for x, y in zip(chain[:-1], chain[1:], strict=True))
             pending = nxt
         else:
@@ -333,8 +367,14 @@ class RingSampler:
             out.append(ids)
         return out
 
-    def _newton(self, fidx: np.ndarray, u: np.ndarray, v: np.ndarray, zc: float, max_step: np.ndarray) -> np.ndarray:
-        """Batched Newton on ``z(u, v) = zc``, each point in its own face. Returns (n, 3) exact points.
+    def _newton(
+        self, fidx: np.ndarray, u: np.ndarray, v: np.ndarray, zc: float, max_step: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Batched Newton on ``z(u, v) = zc``, each point in its own face.
+
+        Returns (n, 3) points and an (n,) mask of those that converged (|z - zc| < LEVEL_TOL_MM). A seed
+        fails where the surface is horizontal there (a plane tangent to it): no point of the level set
+        is near, or the level set is degenerate.
 
         Each step is the smallest move *in 3D* that fixes z to first order: along the surface
         gradient of z, ``d(u, v) = -f G^-1 grad z / (grad z . G^-1 grad z)`` with G the first
@@ -343,12 +383,14 @@ class RingSampler:
         """
         n = len(u)
         self.stats.newton_solves += n
-        out = np.empty((n, 3))
+        out = np.full((n, 3), np.nan)
         act = np.arange(n)
         u, v = u.astype(np.float64).copy(), v.astype(np.float64).copy()
         p, du, dv = gp_Pnt(), gp_Vec(), gp_Vec()
         ads = self._ads
         for _ in range(NEWTON_MAX_ITER):
+            if not act.size:
+                break
             rows = []
             for f, uu, vv in zip(fidx[act].tolist(), u[act].tolist(), v[act].tolist(), strict=True):
                 ads[f].D1(uu, vv, p, du, dv)
@@ -360,7 +402,7 @@ class RingSampler:
             keep = ~done
             act, res, f_ = act[keep], res[keep], f_[keep]
             if not act.size:
-                return out
+                break
             su_, sv_ = res[:, 3:6], res[:, 6:9]
             e_ = np.einsum("ij,ij->i", su_, su_)
             f2 = np.einsum("ij,ij->i", su_, sv_)
@@ -369,18 +411,16 @@ class RingSampler:
             det = e_ * g_ - f2 * f2
             wu, wv = g_ * zu - f2 * zv, e_ * zv - f2 * zu  # det * G^-1 grad z
             denom = zu * wu + zv * wv  # det * (grad z . G^-1 grad z)
-            ok = (det > 0) & (denom > 0)
-            if not ok.all():
-                break
+            ok = (det > 0) & (denom > 0)  # else a horizontal or singular point: no Newton direction
+            act, f_, wu, wv, denom = act[ok], f_[ok], wu[ok], wv[ok], denom[ok]
             su, sv = -f_ * wu / denom, -f_ * wv / denom
             norm = np.hypot(su, sv)
             scale = np.minimum(1.0, max_step[act] / np.where(norm > 0, norm, 1.0))
             u[act] += su * scale
             v[act] += sv * scale
-        raise TessellationError(
-            f"Newton found no exact section point near z={zc:.4f} mm for {act.size} seed(s) "
-            "(a face is flat or degenerate there)"
-        )
+        converged = ~np.isnan(out[:, 0])
+        self.stats.newton_failures += int((~converged).sum())
+        return out, converged
 
 
 def _point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -88,18 +88,9 @@ class SectionTopology:
 
 def cut_topology(mesh: TopoMesh, planes: np.ndarray, *, on_plane_tol: float) -> SectionTopology:
     """Cut ``mesh`` by the (ascending, world) ``planes`` and derive loops and slab components."""
-    z = mesh.xyz[:, 2].copy()
-    # Nodes within tolerance of a plane are put exactly on it: a float32 slicer cannot tell them apart
-    # from the plane anyway, and exact equality is what the crossing convention handles cleanly.
-    if planes.size:
-        near = np.clip(np.searchsorted(planes, z), 1, planes.size) - 1
-        for cand in (near, np.minimum(near + 1, planes.size - 1)):
-            close = np.abs(z - planes[cand]) <= on_plane_tol
-            z[close] = planes[cand[close]]
-    slab = np.searchsorted(planes, z, side="right").astype(np.int64)
     tris = mesh.tris
     m = len(tris)
-    n = len(z)
+    n = len(mesh.xyz)
 
     # --- undirected edges and their two triangles --------------------------------------------------
     corner_a = np.concatenate([tris[:, 0], tris[:, 1], tris[:, 2]])
@@ -113,6 +104,9 @@ def cut_topology(mesh: TopoMesh, planes: np.ndarray, *, on_plane_tol: float) -> 
         raise TessellationError("topology mesh is not a closed 2-manifold")
     edge_tris = (order.reshape(-1, 2) % m).astype(np.int64)
     tri_edges = inv.reshape(3, m).T.copy()
+
+    z = snap_to_planes(mesh, planes, edges, keys, edge_tris, tol=on_plane_tol)
+    slab = np.searchsorted(planes, z, side="right").astype(np.int64)
 
     s_a, s_b = slab[edges[:, 0]], slab[edges[:, 1]]
     edge_lo, edge_hi = np.minimum(s_a, s_b), np.maximum(s_a, s_b)
@@ -242,6 +236,59 @@ def _uv_in_tri(mesh: TopoMesh, t: np.ndarray, lower, upper, frac) -> np.ndarray:
     uv_lo = mesh.tri_uv[t, k_lo]
     uv_up = mesh.tri_uv[t, k_up]
     return uv_lo + frac[:, None] * (uv_up - uv_lo)
+
+
+def snap_to_planes(mesh: TopoMesh, planes, edges, keys, edge_tris, *, tol: float) -> np.ndarray:
+    """Node heights with horizontal B-rep geometry lying on a plane put exactly on it.
+
+    A flat face or a horizontal edge within ``tol`` of a plane is on it for a float32 slicer; left
+    apart, its nodes and the ring just below would collapse into zero-area slivers in the STL. Only
+    such geometry is snapped: the nodes of a horizontal face whose nodes all lie within ``tol`` of one
+    plane, and of a B-rep edge likewise, unless the surface is tangent to the plane along that edge
+    (both neighbouring triangles on the same side, as along the top line of a horizontal hole):
+    there the plane misses the surface by its float32 rounding, and snapping would invent a
+    degenerate, zero-width section.
+    """
+    z = mesh.xyz[:, 2].copy()
+    if not planes.size:
+        return z
+    j = np.clip(np.searchsorted(planes, z), 1, planes.size) - 1
+    j = np.where(np.abs(z - planes[np.minimum(j + 1, planes.size - 1)]) < np.abs(z - planes[j]), np.minimum(j + 1, planes.size - 1), j)
+    near = np.abs(z - planes[j]) <= tol
+    if not near.any():
+        return z
+    snap = np.zeros(len(z), dtype=bool)
+    tri_near = near[mesh.tris].all(axis=1) & (j[mesh.tris] == j[mesh.tris[:, :1]]).all(axis=1)
+    face_all = np.ones(len(mesh.faces), dtype=bool)
+    np.logical_and.at(face_all, mesh.tri_face, tri_near)
+    snap[mesh.tris[face_all[mesh.tri_face]].ravel()] = True
+
+    n = len(z)
+    by_edge: dict[int, list[int]] = {}
+    for (a, b), ei in mesh.edge_of.items():
+        if near[a] and near[b] and j[a] == j[b]:
+            by_edge.setdefault(ei, []).append(int(np.searchsorted(keys, a * n + b)))
+    all_count: dict[int, int] = {}
+    for ei in mesh.edge_of.values():
+        all_count[ei] = all_count.get(ei, 0) + 1
+    for ei, fine in by_edge.items():
+        if len(fine) != all_count[ei]:
+            continue  # only part of the edge is near the plane: not a horizontal edge
+        fine_arr = np.asarray(fine)
+        a, b = edges[fine_arr, 0], edges[fine_arr, 1]
+        zp = planes[j[a]]
+        thirds = []
+        for side in (0, 1):
+            t = edge_tris[fine_arr, side]
+            tn = mesh.tris[t]
+            third = tn[(tn != a[:, None]) & (tn != b[:, None])]
+            thirds.append(np.sign(np.where(near[third], 0.0, z[third] - zp)))
+        tangent = (thirds[0] * thirds[1]) > 0
+        if not tangent.any():
+            snap[a] = True
+            snap[b] = True
+    z[snap] = planes[j[snap]]
+    return z
 
 
 def _walk_loops(succ: np.ndarray, cross_plane: np.ndarray) -> list[tuple[int, np.ndarray]]:

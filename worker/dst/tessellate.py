@@ -42,9 +42,13 @@ def tessellate_solid(sampler: RingSampler) -> tuple[list[tuple[int, int, int]], 
         tri_of = np.searchsorted(topo.piece_off, pieces, side="right") - 1
         slab_of = pieces - topo.piece_off[tri_of] + topo.tri_smin[tri_of]
         whole = topo.tri_smin[tri_of] == topo.tri_smax[tri_of]
+        es = sampler.edge_subdiv
         for t in tri_of[whole].tolist():
-            a, b, c = (sampler.node(int(n)) for n in sampler.mesh.tris[t])
-            out.append((a, b, c))
+            na, nb, nc = (int(n) for n in sampler.mesh.tris[t])
+            if es and any((min(p, q), max(p, q)) in es for p, q in ((na, nb), (nb, nc), (nc, na))):
+                out.extend(_piece_triangles(sampler, t, int(topo.tri_smin[t])))
+                continue
+            out.append((sampler.node(na), sampler.node(nb), sampler.node(nc)))
         for t, k in zip(tri_of[~whole].tolist(), slab_of[~whole].tolist(), strict=True):
             out.extend(_piece_triangles(sampler, t, k))
     # A ring that degenerates to one point (a dome top exactly on a plane) makes zipper triangles with
@@ -97,6 +101,7 @@ def _piece_triangles(sampler: RingSampler, t: int, k: int) -> list[tuple[int, in
     s = [int(topo.slab[n]) for n in tri]
     poly: list[tuple[int, str]] = []  # (vertex id, kind) with kind 'in' (node inside slab) or 'p<j>'
     cross_seq: list[int] = []  # crossing id at each poly position, or -1
+    es = sampler.edge_subdiv
     for i in range(3):
         a, b = tri[i], tri[(i + 1) % 3]
         if s[i] == k:
@@ -106,6 +111,13 @@ def _piece_triangles(sampler: RingSampler, t: int, k: int) -> list[tuple[int, in
             cross_seq.append(-1)
         sa, sb = s[i], s[(i + 1) % 3]
         if sa == sb:
+            if s[i] == k and (min(a, b), max(a, b)) in es:
+                # an edge lying in a plane, subdivided on its ring: the same points here
+                inner = es[(min(a, b), max(a, b))]
+                kind = poly[-1][1]
+                for v in inner if a < b else inner[::-1]:
+                    poly.append((v, kind))
+                    cross_seq.append(-1)
             continue
         e = int(topo.tri_edges[t, i])
         if sa < sb:
@@ -143,20 +155,47 @@ def _piece_triangles(sampler: RingSampler, t: int, k: int) -> list[tuple[int, in
         return []
     ids = [v for v, _ in ring]
     kinds = [kd for _, kd in ring]
+    if _vector_area(sampler.pool, ids) <= 1e-12 * _perimeter(sampler.pool, ids) ** 2:
+        # The piece has collapsed onto a path walked there and back (a triangle touching a plane
+        # along an edge): its boundary edges cancel, so it contributes nothing.
+        return []
     if "in" in kinds:
         apex = kinds.index("in")
         m = len(ids)
         return [
             (ids[apex], ids[(apex + q) % m], ids[(apex + q + 1) % m]) for q in range(1, m - 1)
         ]
+    if len(set(kinds)) == 1:
+        return _centroid_fan(sampler.pool, ids, int(kinds[0][1:]))
     return _two_chain_zipper(ids, kinds)
 
 
+def _centroid_fan(pool: VertexPool, ids: list[int], plane: int) -> list[tuple[int, int, int]]:
+    """Triangulate a convex polygon lying in one plane (a piece of a flat face on that plane).
+
+    Its edges may carry collinear subdivision points, so a fan from one of its vertices could make
+    zero-area triangles; the centroid is strictly inside and, the face being planar, on the face.
+    """
+    if len(ids) == 3:
+        return [(ids[0], ids[1], ids[2])]
+    c = np.mean([pool.xyz[v] for v in ids], axis=0)
+    cv = pool.add((float(c[0]), float(c[1]), float(c[2])), plane)
+    return [(cv, ids[q], ids[(q + 1) % len(ids)]) for q in range(len(ids))]
+
+
+def _vector_area(pool: VertexPool, ids: list[int]) -> float:
+    p = np.array([pool.xyz[v] for v in ids])
+    return float(0.5 * np.linalg.norm(np.cross(p, np.roll(p, -1, axis=0)).sum(axis=0)))
+
+
+def _perimeter(pool: VertexPool, ids: list[int]) -> float:
+    p = np.array([pool.xyz[v] for v in ids])
+    return float(np.linalg.norm(p - np.roll(p, -1, axis=0), axis=1).sum())
+
+
 def _two_chain_zipper(ids: list[int], kinds: list[str]) -> list[tuple[int, int, int]]:
-    """Triangulate a polygon whose vertices lie on (at most) two planes without in-plane diagonals."""
+    """Triangulate a polygon whose vertices lie on two planes without in-plane diagonals."""
     m = len(ids)
-    if len(set(kinds)) == 1:
-        return [(ids[0], ids[q], ids[q + 1]) for q in range(1, m - 1)]
     # Rotate so the polygon starts where the first chain starts.
     start = next(q for q in range(m) if kinds[q] != kinds[q - 1])
     ids = ids[start:] + ids[:start]
