@@ -23,7 +23,6 @@ from worker.dst.step_io import LoadedPart, read_step, solid_volume
 from worker.dst.stl_io import write_stl
 from worker.dst.tessellate import tessellate_solid
 from worker.dst.topomesh import build_topomesh
-from worker.dst.warnings import flat_faces_on_planes
 
 Progress = Callable[[str, float], None]
 
@@ -97,6 +96,7 @@ def slice_part(part: LoadedPart, params: SliceParams, *, progress: Progress | No
     timings["extremes"] = time.perf_counter() - t
 
     pool = VertexPool()
+    flat_planes: set[int] = set()
     all_tris: list[tuple[int, int, int]] = []
     stats: dict = {"solids": len(part.solids), "planes": len(planes), "height_mm": height}
     sampling_totals = {"newton_solves": 0, "edge_roots": 0, "fallbacks": 0, "tolerance_gaps": 0, "max_gap_mm": 0.0,
@@ -105,6 +105,7 @@ def slice_part(part: LoadedPart, params: SliceParams, *, progress: Progress | No
         frac = 0.1 + 0.85 * si / len(meshes)
         t = time.perf_counter()
         topo = cut_topology(mesh, world, on_plane_tol=C.ON_PLANE_TOL_MM)
+        flat_planes.update(topo.flat_planes)
         timings["sections"] = timings.get("sections", 0.0) + time.perf_counter() - t
         report(f"sampling solid {si + 1}/{len(part.solids)}", frac)
         t = time.perf_counter()
@@ -138,7 +139,12 @@ def slice_part(part: LoadedPart, params: SliceParams, *, progress: Progress | No
             "segment budget where a plane is tangent to a nearly horizontal edge: the file's faces and edges "
             "disagree there by their modelling tolerance, and no exact point lies between"
         )
-    warnings.extend(flat_faces_on_planes(part.solids, zmin=zmin, planes=planes))
+    for j in sorted(flat_planes):
+        warnings.append(
+            f"a flat face lies on slicing plane {j} (z = {planes.z[j]:.4f} mm): the exact section there is an "
+            "area, and slicers disagree on it (Cura keeps the outline above the face, PrusaSlicer the one "
+            "below); the DST mesh gives that plane one closed outline"
+        )
     stats["triangles"] = len(triangles)
     stats["vertices"] = len(vertices)
     stats["ring_vertices"] = int(ring.sum())

@@ -112,10 +112,7 @@ class RingSampler:
         vid = self.node_vid.get(n)
         if vid is None:
             p = self.mesh.xyz[n]
-            z = float(self.topo.z[n])
-            plane = int(self.topo.slab[n]) - 1
-            on_plane = plane >= 0 and self.topo.planes[plane] == z
-            vid = self.pool.add((float(p[0]), float(p[1]), z), plane if on_plane else -1)
+            vid = self.pool.add((float(p[0]), float(p[1]), float(self.topo.z[n])), int(self.topo.node_plane[n]))
             self.node_vid[n] = vid
         return vid
 

@@ -26,6 +26,8 @@ from scipy.sparse.csgraph import connected_components
 from worker.dst.errors import TessellationError
 from worker.dst.topomesh import TopoMesh
 
+NOISE_MM = 1e-9  # a node this close to a plane is on it: far below float32 and any model tolerance
+
 
 @dataclass
 class SectionTopology:
@@ -78,6 +80,8 @@ class SectionTopology:
     cross_uv_start: np.ndarray
     cross_uv_end: np.ndarray
     cross_is_corner: np.ndarray
+    flat_planes: list[int]
+    node_plane: np.ndarray
 
     def crossing_id(self, edge: int, plane: int) -> int:
         return int(self.cross_off[edge] + plane - self.edge_lo[edge])
@@ -105,8 +109,18 @@ def cut_topology(mesh: TopoMesh, planes: np.ndarray, *, on_plane_tol: float) -> 
     edge_tris = (order.reshape(-1, 2) % m).astype(np.int64)
     tri_edges = inv.reshape(3, m).T.copy()
 
-    z = snap_to_planes(mesh, planes, edges, keys, edge_tris, tol=on_plane_tol)
-    slab = np.searchsorted(planes, z, side="right").astype(np.int64)
+    z, flat_planes, snapped = snap_to_planes(mesh, planes, edges, keys, edge_tris, tol=on_plane_tol)
+    node_plane = _plane_of(z, planes)
+    # A node on a plane counts as above it, except an isolated local maximum (a dome top or the top
+    # line of a horizontal hole touching the plane): that counts as below, so the plane touching the
+    # surface there does not invent a zero-width section.
+    on = node_plane >= 0
+    has_above = np.zeros(n, dtype=bool)
+    a_, b_ = edges[:, 0], edges[:, 1]
+    np.logical_or.at(has_above, a_, z[b_] > z[a_])
+    np.logical_or.at(has_above, b_, z[a_] > z[b_])
+    below = on & ~snapped & ~has_above
+    slab = (np.searchsorted(planes, z, side="right") - below).astype(np.int64)
 
     s_a, s_b = slab[edges[:, 0]], slab[edges[:, 1]]
     edge_lo, edge_hi = np.minimum(s_a, s_b), np.maximum(s_a, s_b)
@@ -116,8 +130,14 @@ def cut_topology(mesh: TopoMesh, planes: np.ndarray, *, on_plane_tol: float) -> 
     cross_edge = np.repeat(np.arange(n_edges), n_cross_e)
     cross_plane = edge_lo[cross_edge] + (np.arange(n_cross) - cross_off[cross_edge])
     upper = np.where(s_a >= s_b, edges[:, 0], edges[:, 1])
+    lower_e = np.where(s_a >= s_b, edges[:, 1], edges[:, 0])
     up_node = upper[cross_edge]
-    cross_node = np.where(z[up_node] == planes[cross_plane] if n_cross else np.zeros(0, bool), up_node, -1)
+    lo_node = lower_e[cross_edge]
+    if n_cross:
+        zc_ = planes[cross_plane]
+        cross_node = np.where(z[up_node] == zc_, up_node, np.where(z[lo_node] == zc_, lo_node, -1))
+    else:
+        cross_node = np.zeros(0, dtype=np.int64)
 
     # --- triangle segments: start on the edge going above->below, end on the edge going below->above
     smin, smax = slab[tris].min(axis=1), slab[tris].max(axis=1)
@@ -182,7 +202,7 @@ def cut_topology(mesh: TopoMesh, planes: np.ndarray, *, on_plane_tol: float) -> 
 
     # --- seeds: linear interpolation along each crossing's edge, in the segment triangle's (u, v) ------
     zc = planes[cross_plane] if n_cross else np.zeros(0)
-    lower = np.where(s_a >= s_b, edges[:, 1], edges[:, 0])[cross_edge]
+    lower = lo_node
     upper_n = up_node
     frac = (zc - z[lower]) / (z[upper_n] - z[lower]) if n_cross else np.zeros(0)
     cross_xyz = mesh.xyz[lower] + frac[:, None] * (mesh.xyz[upper_n] - mesh.xyz[lower])
@@ -223,7 +243,17 @@ def cut_topology(mesh: TopoMesh, planes: np.ndarray, *, on_plane_tol: float) -> 
         cross_uv_start=cross_uv_start,
         cross_uv_end=cross_uv_end,
         cross_is_corner=cross_is_corner,
+        flat_planes=flat_planes,
+        node_plane=node_plane,
     )
+
+
+def _plane_of(z: np.ndarray, planes: np.ndarray) -> np.ndarray:
+    """Index of the plane each height is exactly on, or -1."""
+    if not planes.size:
+        return np.full(len(z), -1, dtype=np.int64)
+    j = np.clip(np.searchsorted(planes, z), 0, planes.size - 1)
+    return np.where(planes[j] == z, j, -1).astype(np.int64)
 
 
 def _uv_in_tri(mesh: TopoMesh, t: np.ndarray, lower, upper, frac) -> np.ndarray:
@@ -238,8 +268,13 @@ def _uv_in_tri(mesh: TopoMesh, t: np.ndarray, lower, upper, frac) -> np.ndarray:
     return uv_lo + frac[:, None] * (uv_up - uv_lo)
 
 
-def snap_to_planes(mesh: TopoMesh, planes, edges, keys, edge_tris, *, tol: float) -> np.ndarray:
+def snap_to_planes(mesh: TopoMesh, planes, edges, keys, edge_tris, *, tol: float) -> tuple[np.ndarray, list[int]]:
     """Node heights with horizontal B-rep geometry lying on a plane put exactly on it.
+
+    Nodes within numerical noise (``NOISE_MM``) of a plane are on it whatever the geometry.
+
+    Returns the heights, the indices of planes that hold a whole (flat) face, and the mask of nodes
+    snapped as horizontal geometry.
 
     A flat face or a horizontal edge within ``tol`` of a plane is on it for a float32 slicer; left
     apart, its nodes and the ring just below would collapse into zero-area slivers in the STL. Only
@@ -250,18 +285,22 @@ def snap_to_planes(mesh: TopoMesh, planes, edges, keys, edge_tris, *, tol: float
     degenerate, zero-width section.
     """
     z = mesh.xyz[:, 2].copy()
+    none = np.zeros(len(z), dtype=bool)
     if not planes.size:
-        return z
+        return z, [], none
     j = np.clip(np.searchsorted(planes, z), 1, planes.size) - 1
     j = np.where(np.abs(z - planes[np.minimum(j + 1, planes.size - 1)]) < np.abs(z - planes[j]), np.minimum(j + 1, planes.size - 1), j)
+    noise = np.abs(z - planes[j]) <= NOISE_MM
+    z[noise] = planes[j[noise]]
     near = np.abs(z - planes[j]) <= tol
     if not near.any():
-        return z
+        return z, [], none
     snap = np.zeros(len(z), dtype=bool)
     tri_near = near[mesh.tris].all(axis=1) & (j[mesh.tris] == j[mesh.tris[:, :1]]).all(axis=1)
     face_all = np.ones(len(mesh.faces), dtype=bool)
     np.logical_and.at(face_all, mesh.tri_face, tri_near)
     snap[mesh.tris[face_all[mesh.tri_face]].ravel()] = True
+    flat_planes = sorted(set(j[mesh.tris[face_all[mesh.tri_face], 0]].tolist()))
 
     n = len(z)
     by_edge: dict[int, list[int]] = {}
@@ -288,7 +327,7 @@ def snap_to_planes(mesh: TopoMesh, planes, edges, keys, edge_tris, *, tol: float
             snap[a] = True
             snap[b] = True
     z[snap] = planes[j[snap]]
-    return z
+    return z, flat_planes, snap
 
 
 def _walk_loops(succ: np.ndarray, cross_plane: np.ndarray) -> list[tuple[int, np.ndarray]]:

@@ -153,7 +153,7 @@ def _merge_nodes(xyz: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
     first = np.full(labels.max() + 1, -1, dtype=np.int64)
     order = np.arange(n)[::-1]
     first[labels[order]] = order  # smallest local index of each group represents it
-    return labels, xyz[first]
+    return labels.astype(np.int64), xyz[first]
 
 
 def _check_closed(tris: np.ndarray) -> None:

@@ -1,0 +1,83 @@
+"""Shared fixtures: STEP parts built by the tests themselves, and the shared corpus when present."""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import pytest
+
+CORPUS = Path(__file__).resolve().parents[1].parent / "shared" / "corpus"
+
+
+def build_part(kind: str, **kw):
+    """An analytic part as a build123d shape (mm). Kinds: hemisphere, torus, cone, tube, step_box."""
+    import build123d as bd
+
+    if kind == "hemisphere":
+        r = kw.get("radius", 20.0)
+        return bd.Sphere(r) - bd.Box(3 * r, 3 * r, 3 * r, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MAX))
+    if kind == "torus":
+        return bd.Torus(kw.get("major", 15.0), kw.get("minor", 5.0))
+    if kind == "cone":
+        return bd.Cone(kw.get("radius", 10.0), 0.0, kw.get("height", 20.0), align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MIN))
+    if kind == "tube":
+        outer = bd.Cylinder(kw.get("outer", 8.0), kw.get("length", 30.0))
+        inner = bd.Cylinder(kw.get("inner", 4.0), kw.get("length", 30.0) + 2)
+        return (outer - inner).rotate(bd.Axis.X, kw.get("tilt_deg", 30.0))
+    if kind == "step_box":
+        # A 20 x 20 x 4.1 block with a 10 x 10 x 3 block on it: the step's flat face at z = 4.1 lies
+        # exactly on the middle-mode plane 0.1 + 0.2 * 20 for h = 0.2.
+        base = bd.Box(20, 20, 4.1, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MIN))
+        top = bd.Pos(0, 0, 4.1) * bd.Box(10, 10, 3, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MIN))
+        return base + top
+    raise ValueError(kind)
+
+
+def write_step(shape, path: Path, *, nurbs: bool = True, unit: str | None = None) -> Path:
+    """Write ``shape`` to STEP, converted to B-splines (``BRepBuilderAPI_NurbsConvert``) by default."""
+    from OCP.BRepBuilderAPI import BRepBuilderAPI_NurbsConvert
+    from OCP.Interface import Interface_Static
+    from OCP.STEPControl import STEPControl_AsIs, STEPControl_Writer
+
+    occ = shape.wrapped if hasattr(shape, "wrapped") else shape
+    if nurbs:
+        occ = BRepBuilderAPI_NurbsConvert(occ, True).Shape()
+    writer = STEPControl_Writer()
+    if unit:
+        Interface_Static.SetCVal_s("write.step.unit", unit)
+    try:
+        writer.Transfer(occ, STEPControl_AsIs)
+        assert writer.Write(str(path)) == 1
+    finally:
+        if unit:
+            Interface_Static.SetCVal_s("write.step.unit", "MM")
+    return path
+
+
+@pytest.fixture
+def make_step(tmp_path):
+    """Factory: ``make_step("hemisphere", radius=20)`` -> path of a B-spline STEP file under tmp_path."""
+    counter = [0]
+
+    def factory(kind: str, *, nurbs: bool = True, unit: str | None = None, **kw) -> Path:
+        counter[0] += 1
+        return write_step(build_part(kind, **kw), tmp_path / f"{kind}_{counter[0]}.step", nurbs=nurbs, unit=unit)
+
+    return factory
+
+
+@pytest.fixture(scope="session")
+def corpus() -> Path:
+    if not CORPUS.is_dir():
+        pytest.skip(f"the shared STEP corpus is not beside this checkout ({CORPUS})")
+    return CORPUS
+
+
+def circle_sag(radius, length):
+    """Sagitta (mm) of a chord of ``length`` in a circle of ``radius``."""
+    return radius - math.sqrt(max(radius * radius - 0.25 * length * length, 0.0))
+
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")

@@ -1,0 +1,56 @@
+"""Independent checks of the DST guarantees on a finished mesh (test helpers, not product code)."""
+
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+
+
+def assert_watertight(mesh) -> trimesh.Trimesh:
+    tm = trimesh.Trimesh(mesh.vertices, mesh.triangles, process=False)
+    assert tm.is_watertight, "mesh is not watertight"
+    assert tm.is_winding_consistent, "mesh winding is inconsistent"
+    assert tm.volume > 0, "mesh is inside out"
+    area = tm.area_faces
+    assert area.min() > 0, "zero-area triangle"
+    return tm
+
+
+def ring_edges(mesh) -> tuple[np.ndarray, np.ndarray]:
+    """Undirected edges with both ends on the same plane, and that plane's index."""
+    t = mesh.triangles
+    e = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
+    e = np.unique(e, axis=0)
+    vp = mesh.vertex_plane
+    same = (vp[e[:, 0]] >= 0) & (vp[e[:, 0]] == vp[e[:, 1]])
+    return e[same], vp[e[same, 0]]
+
+
+def assert_slab_property(mesh, tol: float = 1e-9) -> None:
+    """No triangle has vertices strictly on both sides of any plane; each ring edge has exactly one
+    triangle above and one below (so a slicer's cut at each plane is exactly the rings)."""
+    v, t, z = mesh.vertices, mesh.triangles, mesh.planes.z
+    tz = v[t][:, :, 2]
+    lo, hi = tz.min(axis=1), tz.max(axis=1)
+    k_lo = np.searchsorted(z, lo + tol, side="left")  # first plane above lo
+    k_hi = np.searchsorted(z, hi - tol, side="right")  # planes below hi
+    straddle = k_hi > k_lo
+    assert not straddle.any(), f"{int(straddle.sum())} triangles cross a plane"
+    edges, planes = ring_edges(mesh)
+    # third vertex of each triangle on each ring edge: above or below the plane
+    key = {tuple(e): i for i, e in enumerate(edges.tolist())}
+    above = np.zeros(len(edges), int)
+    below = np.zeros(len(edges), int)
+    for tri in t.tolist():
+        for a, b, c in ((tri[0], tri[1], tri[2]), (tri[1], tri[2], tri[0]), (tri[2], tri[0], tri[1])):
+            i = key.get((min(a, b), max(a, b)))
+            if i is None:
+                continue
+            dz = v[c, 2] - z[planes[i]]
+            if dz > tol:
+                above[i] += 1
+            elif dz < -tol:
+                below[i] += 1
+    flat = (above + below) < 2
+    ok = (above == 1) & (below == 1)
+    assert (ok | flat).all(), "a ring edge is not shared by one triangle above and one below"
