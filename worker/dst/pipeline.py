@@ -76,7 +76,8 @@ def slice_part(part: LoadedPart, params: SliceParams, *, progress: Progress | No
     timings: dict[str, float] = {"read": time.perf_counter() - t0}
     warnings = list(part.warnings)
 
-    diag = bbox_diagonal(part)
+    diag, loose_height = bbox_diagonal(part)
+    plan_planes(height=loose_height, params=params)  # refuse absurd plane counts before any meshing
     deflection = min(C.TOPO_DEFLECTION_MAX_MM, max(C.TOPO_DEFLECTION_MIN_MM, C.TOPO_DEFLECTION_REL * diag))
     deflection = min(deflection, params.chord_error)
     t = time.perf_counter()
@@ -166,12 +167,12 @@ def slice_part(part: LoadedPart, params: SliceParams, *, progress: Progress | No
     )
 
 
-def bbox_diagonal(part: LoadedPart) -> float:
-    """Diagonal of the part's (loose, fast) bounding box, mm: the scale for relative tolerances."""
+def bbox_diagonal(part: LoadedPart) -> tuple[float, float]:
+    """Diagonal and height (mm) of the part's loose, fast bounding box: scale for relative tolerances."""
     box = Bnd_Box()
     BRepBndLib.Add_s(part.compound, box, False)
     lo, hi = np.array(box.CornerMin().Coord()), np.array(box.CornerMax().Coord())
-    return float(np.linalg.norm(hi - lo))
+    return float(np.linalg.norm(hi - lo)), float(hi[2] - lo[2])
 
 
 def mesh_volume(v: np.ndarray, t: np.ndarray) -> float:

@@ -37,20 +37,19 @@ def assert_slab_property(mesh, tol: float = 1e-9) -> None:
     straddle = k_hi > k_lo
     assert not straddle.any(), f"{int(straddle.sum())} triangles cross a plane"
     edges, planes = ring_edges(mesh)
-    # third vertex of each triangle on each ring edge: above or below the plane
-    key = {tuple(e): i for i, e in enumerate(edges.tolist())}
-    above = np.zeros(len(edges), int)
-    below = np.zeros(len(edges), int)
-    for tri in t.tolist():
-        for a, b, c in ((tri[0], tri[1], tri[2]), (tri[1], tri[2], tri[0]), (tri[2], tri[0], tri[1])):
-            i = key.get((min(a, b), max(a, b)))
-            if i is None:
-                continue
-            dz = v[c, 2] - z[planes[i]]
-            if dz > tol:
-                above[i] += 1
-            elif dz < -tol:
-                below[i] += 1
+    n = len(v)
+    ring_key = edges[:, 0] * n + edges[:, 1]
+    corners = [t[:, [0, 1, 2]], t[:, [1, 2, 0]], t[:, [2, 0, 1]]]
+    a = np.concatenate([c[:, 0] for c in corners])
+    b = np.concatenate([c[:, 1] for c in corners])
+    third = np.concatenate([c[:, 2] for c in corners])
+    key = np.minimum(a, b) * n + np.maximum(a, b)
+    pos = np.searchsorted(ring_key, key)
+    pos = np.minimum(pos, len(ring_key) - 1)
+    hit = ring_key[pos] == key
+    dz = v[third[hit], 2] - z[planes[pos[hit]]]
+    above = np.bincount(pos[hit][dz > tol], minlength=len(edges))
+    below = np.bincount(pos[hit][dz < -tol], minlength=len(edges))
     flat = (above + below) < 2
     ok = (above == 1) & (below == 1)
-    assert (ok | flat).all(), "a ring edge is not shared by one triangle above and one below"
+    assert (ok | flat).all(), f"{int((~(ok | flat)).sum())} ring edges are not shared by one triangle above and one below"
