@@ -1,0 +1,127 @@
+"""Every file of the shared STEP corpus: a checked DST mesh, or a clear, specific error.
+
+A mesh is checked for watertightness, for the slab property (each plane cuts exactly the rings), and
+against OCCT's exact section (``BRepAlgoAPI_Section`` with approximation, sampled densely) at three
+planes: every ring vertex lies on the exact section, and every exact section point lies within the
+chord budget of the ring polylines.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.conftest import CORPUS
+from tests.worker.dst.meshcheck import assert_slab_property, assert_watertight, ring_edges
+from worker.dst.errors import DstError
+from worker.dst.params import SliceParams
+from worker.dst.pipeline import slice_step
+
+pytestmark = pytest.mark.corpus
+
+FILES = sorted(p for p in CORPUS.glob("*/*") if p.suffix.lower() in {".stp", ".step"}) if CORPUS.is_dir() else []
+MAY_FAIL_DIRS = {"surface", "malformed"}  # these may hold no closed solid: a clear error is right
+RING_TOL_MM = 1e-5
+SLOW = {"tr8_bv1_tc.stp", "bug29241.stp", "trj3_s1-ec-214.stp", "face_recognition_sample_part.stp",
+        "trj3_t2-db-214.stp", "eight_cyl.stp", "box_sides.STEP", "11752.stp", "bug27453_165-174_piattello.stp",
+        "bug32314_corrupted.stp", "bug28366_fuselage.stp", "as1_motor.step"}
+
+# Files that hold closed solids but on which the core does not yet produce a mesh: kept visible as
+# strict xfails (a fix turns them into failures until this list is updated).
+KNOWN_FAILURES = {
+    "trj3_s1-al-214.stp": "OCCT's mesh of this solid is not manifold (2 edges)",
+    "trj7_b1-ec-214.stp": "BRepMesh cannot mesh one face (354)",
+    "trj10_b2-oc-214.stp": "BRepMesh cannot mesh one face (73)",
+    "bug32596_abc_0_13.step": "OCCT's mesh of this solid has open edges",
+    "11752.stp": "the DST mesh of this 1018-face part is not closed yet",
+}
+
+
+def _params(path: Path) -> SliceParams:
+    return SliceParams(layer_height=0.2)
+
+
+def _exact_section_points(solid, z: float, step: float = 0.02) -> np.ndarray:
+    from OCP.BRepAdaptor import BRepAdaptor_Curve
+    from OCP.BRepAlgoAPI import BRepAlgoAPI_Section
+    from OCP.gp import gp_Dir, gp_Pln, gp_Pnt
+    from OCP.GCPnts import GCPnts_UniformAbscissa
+    from OCP.TopAbs import TopAbs_EDGE
+    from OCP.TopExp import TopExp_Explorer
+    from OCP.TopoDS import TopoDS
+
+    sec = BRepAlgoAPI_Section(solid, gp_Pln(gp_Pnt(0, 0, z), gp_Dir(0, 0, 1)), False)
+    sec.Approximation(True)
+    sec.Build()
+    pts = []
+    exp = TopExp_Explorer(sec.Shape(), TopAbs_EDGE)
+    while exp.More():
+        curve = BRepAdaptor_Curve(TopoDS.Edge(exp.Current()))
+        exp.Next()
+        sampler = GCPnts_UniformAbscissa(curve, step)
+        if sampler.IsDone():
+            pts.extend(curve.Value(sampler.Parameter(i)).Coord() for i in range(1, sampler.NbPoints() + 1))
+    return np.array(pts).reshape(-1, 3)
+
+
+def _distance_to_segments(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """For each point, the distance (mm, xy) to the nearest of the segments a-b."""
+    out = np.empty(len(p))
+    ab = b - a
+    denom = np.maximum((ab * ab).sum(1), 1e-300)
+    for i in range(0, len(p), 256):
+        q = p[i : i + 256, None, :]
+        t = np.clip(((q - a[None]) * ab[None]).sum(2) / denom[None], 0, 1)
+        d = np.linalg.norm(q - (a[None] + t[..., None] * ab[None]), axis=2)
+        out[i : i + 256] = d.min(axis=1)
+    return out
+
+
+def _check_against_exact_sections(mesh) -> None:
+    edges, planes = ring_edges(mesh)
+    n = len(mesh.planes)
+    for j in sorted({n // 4, n // 2, (3 * n) // 4}):
+        sel = planes == j
+        if not sel.any():
+            continue
+        zw = mesh.z_offset + float(mesh.planes.section_z[j])
+        exact = np.concatenate([_exact_section_points(s, zw) for s in mesh.part.solids])[:, :2]
+        if len(exact) == 0:
+            continue
+        a = mesh.vertices[edges[sel, 0], :2]
+        b = mesh.vertices[edges[sel, 1], :2]
+        # exact -> rings: within the chord budget (plus the sampler's own resolution)
+        d = _distance_to_segments(exact, a, b)
+        assert np.quantile(d, 0.999) <= mesh.params.chord_error + 1e-3, f"plane {j}: exact section far from rings"
+        # rings -> exact: each ring vertex is on the exact section
+        ring_v = np.unique(edges[sel].ravel())
+        dv = _distance_to_segments(mesh.vertices[ring_v, :2], exact[:-1], exact[1:])
+        assert np.median(dv) < 0.02 and np.quantile(dv, 0.99) < 0.05, f"plane {j}: ring vertex off the section"
+
+
+def _case(p: Path):
+    marks = []
+    if p.name in SLOW:
+        marks.append(pytest.mark.slow)
+    if p.name in KNOWN_FAILURES:
+        marks.append(pytest.mark.xfail(reason=KNOWN_FAILURES[p.name], strict=True, raises=DstError))
+    return pytest.param(p, marks=marks, id=f"{p.parent.name}/{p.name}")
+
+
+@pytest.mark.parametrize("path", [_case(p) for p in FILES])
+def test_corpus_file(path: Path):
+    try:
+        mesh = slice_step(path, _params(path))
+    except DstError as exc:
+        assert exc.code != "dst_error" and str(exc), "errors must be specific"
+        if path.parent.name in MAY_FAIL_DIRS or exc.code == "resource_limit":
+            return
+        raise
+    assert_watertight(mesh)
+    assert_slab_property(mesh)
+    assert mesh.vertices[:, 2].min() == 0.0
+    vol = mesh.stats["mesh_volume_mm3"] / mesh.stats["exact_volume_mm3"]
+    assert 0.97 < vol < 1.03, f"volume ratio {vol}"
+    _check_against_exact_sections(mesh)
