@@ -391,7 +391,7 @@ class RingSampler:
             rows = []
             for f, uu, vv in zip(fidx[act].tolist(), u[act].tolist(), v[act].tolist(), strict=True):
                 ads[f].D1(uu, vv, p, du, dv)
-                rows.append((p.X(), p.Y(), p.Z(), du.X(), du.Y(), du.Z(), dv.X(), dv.Y(), dv.Z()))
+                rows.append(p.Coord() + du.Coord() + dv.Coord())
             res = np.array(rows).reshape(-1, 9)
             f_ = res[:, 2] - zc
             done = np.abs(f_) < LEVEL_TOL_MM

@@ -79,13 +79,10 @@ def build_topomesh(solid: TopoDS_Shape, *, deflection: float, angular: float, me
             raise TessellationError(f"face {len(faces) + 1} could not be meshed (degenerate or invalid face)")
         trsf = loc.Transformation()
         n = tri.NbNodes()
-        pts = np.empty((n, 3))
-        uvs = np.empty((n, 2))
-        for i in range(1, n + 1):
-            p = tri.Node(i).Transformed(trsf)
-            pts[i - 1] = (p.X(), p.Y(), p.Z())
-            q = tri.UVNode(i)
-            uvs[i - 1] = (q.X(), q.Y())
+        pts = np.array([tri.Node(i).Coord() for i in range(1, n + 1)], dtype=np.float64).reshape(-1, 3)
+        if not loc.IsIdentity():
+            pts = np.array([tri.Node(i).Transformed(trsf).Coord() for i in range(1, n + 1)]).reshape(-1, 3)
+        uvs = np.array([tri.UVNode(i).Coord() for i in range(1, n + 1)], dtype=np.float64).reshape(-1, 2)
         t = np.array([tri.Triangle(i).Get() for i in range(1, tri.NbTriangles() + 1)], dtype=np.int64) - 1
         if face.Orientation() == TopAbs_REVERSED:
             t = t[:, ::-1]
