@@ -13,7 +13,7 @@ from OCP.Bnd import Bnd_Box
 from OCP.BRepBndLib import BRepBndLib
 
 from worker.dst import constants as C
-from worker.dst.errors import TessellationError
+from worker.dst.errors import ResourceLimitExceeded, TessellationError
 from worker.dst.lowest import snap_extremes
 from worker.dst.params import SliceParams
 from worker.dst.planes import PlanePlan, plan_planes
@@ -96,18 +96,30 @@ def slice_part(part: LoadedPart, params: SliceParams, *, progress: Progress | No
     world = zmin + planes.section_z
     timings["extremes"] = time.perf_counter() - t
 
+    topos = []
+    estimate = 0.0
+    for mesh in meshes:
+        t = time.perf_counter()
+        topo = cut_topology(mesh, world, on_plane_tol=C.ON_PLANE_TOL_MM)
+        timings["sections"] = timings.get("sections", 0.0) + time.perf_counter() - t
+        topos.append(topo)
+        estimate += estimated_triangles(topo, params)
+    if estimate > C.MAX_TRIANGLES:
+        raise ResourceLimitExceeded(
+            f"this part would need about {estimate / 1e6:.0f} million triangles at {params.layer_height} mm layers "
+            f"and {params.segment_length} mm segments (limit {C.MAX_TRIANGLES / 1e6:.0f} million): "
+            "check the file's units, or use thicker layers or longer segments"
+        )
+
     pool = VertexPool()
     flat_planes: set[int] = set()
     all_tris: list[tuple[int, int, int]] = []
     stats: dict = {"solids": len(part.solids), "planes": len(planes), "height_mm": height}
     sampling_totals = {"newton_solves": 0, "edge_roots": 0, "fallbacks": 0, "tolerance_gaps": 0, "max_gap_mm": 0.0,
                        "tangent_segments": 0, "newton_failures": 0}
-    for si, mesh in enumerate(meshes):
+    for si, (mesh, topo) in enumerate(zip(meshes, topos, strict=True)):
         frac = 0.1 + 0.85 * si / len(meshes)
-        t = time.perf_counter()
-        topo = cut_topology(mesh, world, on_plane_tol=C.ON_PLANE_TOL_MM)
         flat_planes.update(topo.flat_planes)
-        timings["sections"] = timings.get("sections", 0.0) + time.perf_counter() - t
         report(f"sampling solid {si + 1}/{len(part.solids)}", frac)
         t = time.perf_counter()
         sampler = RingSampler(mesh, topo, pool, segment_length=params.segment_length, chord_error=params.chord_error)
@@ -165,6 +177,14 @@ def slice_part(part: LoadedPart, params: SliceParams, *, progress: Progress | No
         warnings=warnings,
         stats=stats,
     )
+
+
+def estimated_triangles(topo, params: SliceParams) -> float:
+    """Lower bound of the DST triangle count: two per ring vertex at the segment budget."""
+    if not len(topo.succ):
+        return 0.0
+    length = float(np.linalg.norm(topo.cross_xyz[topo.succ] - topo.cross_xyz, axis=1).sum())
+    return 2.0 * length / (params.segment_length * C.SEGMENT_FILL)
 
 
 def bbox_diagonal(part: LoadedPart) -> tuple[float, float]:

@@ -156,3 +156,12 @@ def test_write_binary_and_ascii_stl_round_trip(hemisphere, tmp_path):
         # every ring height is still exactly a float32 plane after the round trip
         zs = set(np.unique(tm.vertices[:, 2].astype(np.float32)).tolist())
         assert set(hemisphere.planes.z32.tolist()) <= zs
+
+
+def test_jobs_beyond_the_triangle_limit_are_refused_before_sampling(make_step, monkeypatch):
+    from worker.dst import constants
+    from worker.dst.errors import ResourceLimitExceeded
+
+    monkeypatch.setattr(constants, "MAX_TRIANGLES", 1000)
+    with pytest.raises(ResourceLimitExceeded, match="million triangles"):
+        slice_step(make_step("cone", radius=10.0, height=10.0), SliceParams())
