@@ -116,7 +116,7 @@ def slice_part(part: LoadedPart, params: SliceParams, *, progress: Progress | No
     all_tris: list[tuple[int, int, int]] = []
     stats: dict = {"solids": len(part.solids), "planes": len(planes), "height_mm": height}
     sampling_totals = {"newton_solves": 0, "edge_roots": 0, "fallbacks": 0, "tolerance_gaps": 0, "max_gap_mm": 0.0,
-                       "tangent_segments": 0, "newton_failures": 0}
+                       "tangent_segments": 0, "newton_failures": 0, "max_gap_at": ""}
     for si, (mesh, topo) in enumerate(zip(meshes, topos, strict=True)):
         frac = 0.1 + 0.85 * si / len(meshes)
         flat_planes.update(topo.flat_planes)
@@ -130,6 +130,10 @@ def slice_part(part: LoadedPart, params: SliceParams, *, progress: Progress | No
             stats[k] = stats.get(k, 0) + v
         for k in sampling_totals:
             value = getattr(sampler.stats, k)
+            if k == "max_gap_at":
+                continue
+            if k == "max_gap_mm" and value > sampling_totals[k]:
+                sampling_totals["max_gap_at"] = sampler.stats.max_gap_at
             sampling_totals[k] = max(sampling_totals[k], value) if k.startswith("max_") else sampling_totals[k] + value
     stats.update(sampling_totals)
 
@@ -148,9 +152,10 @@ def slice_part(part: LoadedPart, params: SliceParams, *, progress: Progress | No
         )
     if stats["tolerance_gaps"]:
         warnings.append(
-            f"{stats['tolerance_gaps']} ring segment(s) up to {stats['max_gap_mm']:.3g} mm long exceed the "
-            "segment budget where a plane is tangent to a nearly horizontal edge: the file's faces and edges "
-            "disagree there by their modelling tolerance, and no exact point lies between"
+            f"{stats['tolerance_gaps']} ring segment(s), up to {stats['max_gap_mm']:.3g} mm long, exceed the "
+            "segment budget because no exact point could be placed between their ends (a plane nearly "
+            "tangent to the surface, or a face and its edge disagreeing within the file's tolerance); "
+            f"the longest at {stats['max_gap_at']}"
         )
     for j in sorted(flat_planes):
         warnings.append(

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from OCP.gp import gp_Pnt, gp_Vec
 
+from worker.dst.analytic import evaluator
 from worker.dst.constants import (
     LEVEL_TOL_MM,
     MAX_SUBDIVISION,
@@ -72,6 +73,7 @@ class SamplingStats:
     tangent_segments: int = 0  # segments kept over budget where the plane is tangent to the surface
     newton_failures: int = 0  # seeds with no exact point (dropped; see tangent_segments)
     max_gap_mm: float = 0.0
+    max_gap_at: str = ""
 
 
 @dataclass
@@ -103,6 +105,8 @@ class RingSampler:
         self.edge_subdiv: dict[tuple[int, int], list[int]] = {}
         self._edge_param: dict[tuple[int, int], float] = {}
         self._ads = [f.ad for f in mesh.faces]
+        self._evals = [evaluator(ad) for ad in self._ads]
+        self._analytic = np.array([e is not None for e in self._evals], dtype=bool)
         uv = mesh.tri_uv
         # (u, v) size of each topology triangle: the scale of a Newton step from a seed
         self.tri_uv_scale = np.max(np.linalg.norm(uv - np.roll(uv, 1, axis=1), axis=2), axis=1) + 1e-12
@@ -315,7 +319,13 @@ class RingSampler:
             gap = bad & ((sb - sa) < GAP_SPAN_REL * np.maximum(lengths[ri], 1.0))
             if gap.any():
                 self.stats.tolerance_gaps += int(gap.sum())
-                self.stats.max_gap_mm = max(self.stats.max_gap_mm, float(length[gap].max()))
+                g = int(np.argmax(np.where(gap, length, -1.0)))
+                if length[g] > self.stats.max_gap_mm:
+                    self.stats.max_gap_mm = float(length[g])
+                    self.stats.max_gap_at = (
+                        f"z={zc:.4f} mm, face {run_face[ri[g]] + 1}, from {np.round(pa[g], 4).tolist()} "
+                        f"to {np.round(pb[g], 4).tolist()}"
+                    )
                 bad &= ~gap
             if not bad.any():
                 break
@@ -364,6 +374,28 @@ class RingSampler:
             out.append(ids)
         return out
 
+    def _d1(self, fa: np.ndarray, ua: np.ndarray, va: np.ndarray, ads, p, du, dv) -> np.ndarray:
+        """(n, 9) rows P, Pu, Pv: closed forms for elementary faces, OCCT's D1 for the others."""
+        res = np.empty((len(fa), 9))
+        an = self._analytic[fa]
+        other = np.flatnonzero(~an)
+        if other.size:
+            rows = []
+            for f, uu, vv in zip(fa[other].tolist(), ua[other].tolist(), va[other].tolist(), strict=True):
+                ads[f].D1(uu, vv, p, du, dv)
+                rows.append(p.Coord() + du.Coord() + dv.Coord())
+            res[other] = np.array(rows).reshape(-1, 9)
+        idx = np.flatnonzero(an)
+        if idx.size:
+            order = idx[np.argsort(fa[idx], kind="stable")]
+            faces, starts = np.unique(fa[order], return_index=True)
+            bounds = np.append(starts, len(order))
+            for k, f in enumerate(faces.tolist()):
+                sel = order[bounds[k] : bounds[k + 1]]
+                P, Pu, Pv = self._evals[f](ua[sel], va[sel])
+                res[sel, 0:3], res[sel, 3:6], res[sel, 6:9] = P, Pu, Pv
+        return res
+
     def _newton(
         self, fidx: np.ndarray, u: np.ndarray, v: np.ndarray, zc: float, max_step: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
@@ -388,11 +420,7 @@ class RingSampler:
         for _ in range(NEWTON_MAX_ITER):
             if not act.size:
                 break
-            rows = []
-            for f, uu, vv in zip(fidx[act].tolist(), u[act].tolist(), v[act].tolist(), strict=True):
-                ads[f].D1(uu, vv, p, du, dv)
-                rows.append(p.Coord() + du.Coord() + dv.Coord())
-            res = np.array(rows).reshape(-1, 9)
+            res = self._d1(fidx[act], u[act], v[act], ads, p, du, dv)
             f_ = res[:, 2] - zc
             done = np.abs(f_) < LEVEL_TOL_MM
             out[act[done]] = res[done, :3]
