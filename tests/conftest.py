@@ -32,6 +32,14 @@ def build_part(kind: str, **kw):
         base = bd.Box(20, 20, 4.1, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MIN))
         top = bd.Pos(0, 0, 4.1) * bd.Box(10, 10, 3, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MIN))
         return base + top
+    if kind == "tangent_features":
+        # A block with a horizontal hole whose bottom (z = 0.1) and top (z = 4.1) lines lie on the
+        # middle-mode planes for h = 0.2, and a sphere whose top (z = 8.1) touches plane 40.
+        block = bd.Box(30, 10, 10, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MIN))
+        hole = bd.Pos(0, 0, 2.1) * bd.Cylinder(2.0, 40, rotation=(0, 90, 0))
+        dome = bd.Pos(8, 0, 6.1) * bd.Sphere(2.0)
+        pocket = bd.Pos(8, 0, 9) * bd.Box(8, 8, 6)
+        return (block - hole - pocket) + dome
     raise ValueError(kind)
 
 

@@ -96,11 +96,13 @@ def slice_part(part: LoadedPart, params: SliceParams, *, progress: Progress | No
     world = zmin + planes.section_z
     timings["extremes"] = time.perf_counter() - t
 
+    # half the float32 spacing at each plane: a node closer than that is written onto the plane
+    float32_resolution = 0.5 * np.spacing(np.abs(planes.z32)).astype(np.float64)
     topos = []
     estimate = 0.0
     for mesh in meshes:
         t = time.perf_counter()
-        topo = cut_topology(mesh, world, on_plane_tol=C.ON_PLANE_TOL_MM)
+        topo = cut_topology(mesh, world, on_plane_tol=C.ON_PLANE_TOL_MM, noise_tol=float32_resolution)
         timings["sections"] = timings.get("sections", 0.0) + time.perf_counter() - t
         topos.append(topo)
         estimate += estimated_triangles(topo, params)
@@ -143,7 +145,8 @@ def slice_part(part: LoadedPart, params: SliceParams, *, progress: Progress | No
     triangles = np.asarray(all_tris, dtype=np.int64).reshape(-1, 3)
     vertices[:, 2] -= zmin
     ring = vertex_plane >= 0
-    vertices[ring, 2] = planes.z[vertex_plane[ring]]
+    # exactly the float32 height the section was computed at (and that the STL will hold)
+    vertices[ring, 2] = planes.section_z[vertex_plane[ring]]
     check_mesh(vertices, triangles)
     if stats["tangent_segments"]:
         warnings.append(

@@ -26,7 +26,7 @@ from scipy.sparse.csgraph import connected_components
 from worker.dst.errors import TessellationError
 from worker.dst.topomesh import TopoMesh
 
-NOISE_MM = 1e-9  # a node this close to a plane is on it: far below float32 and any model tolerance
+NOISE_MM = 1e-9  # a node this close to a plane is on it at least: numerical noise of the evaluators
 
 
 @dataclass
@@ -90,8 +90,14 @@ class SectionTopology:
         return int(self.piece_off[tri] + slab - self.tri_smin[tri])
 
 
-def cut_topology(mesh: TopoMesh, planes: np.ndarray, *, on_plane_tol: float) -> SectionTopology:
-    """Cut ``mesh`` by the (ascending, world) ``planes`` and derive loops and slab components."""
+def cut_topology(
+    mesh: TopoMesh, planes: np.ndarray, *, on_plane_tol: float, noise_tol: np.ndarray | None = None
+) -> SectionTopology:
+    """Cut ``mesh`` by the (ascending, world) ``planes`` and derive loops and slab components.
+
+    ``noise_tol`` (per plane, mm): a node this close to a plane is on it whatever the geometry; pass the
+    float32 resolution of the written heights, at which the STL puts such a node on the plane anyway.
+    """
     tris = mesh.tris
     m = len(tris)
     n = len(mesh.xyz)
@@ -109,7 +115,11 @@ def cut_topology(mesh: TopoMesh, planes: np.ndarray, *, on_plane_tol: float) -> 
     edge_tris = (order.reshape(-1, 2) % m).astype(np.int64)
     tri_edges = inv.reshape(3, m).T.copy()
 
-    z, flat_planes, snapped = snap_to_planes(mesh, planes, edges, keys, edge_tris, tol=on_plane_tol)
+    if noise_tol is None:
+        noise_tol = np.full(planes.size, NOISE_MM)
+    z, flat_planes, snapped = snap_to_planes(
+        mesh, planes, edges, keys, edge_tris, tol=on_plane_tol, noise_tol=np.maximum(noise_tol, NOISE_MM)
+    )
     node_plane = _plane_of(z, planes)
     # A node on a plane counts as above it, except an isolated local maximum (a dome top or the top
     # line of a horizontal hole touching the plane): that counts as below, so the plane touching the
@@ -268,10 +278,13 @@ def _uv_in_tri(mesh: TopoMesh, t: np.ndarray, lower, upper, frac) -> np.ndarray:
     return uv_lo + frac[:, None] * (uv_up - uv_lo)
 
 
-def snap_to_planes(mesh: TopoMesh, planes, edges, keys, edge_tris, *, tol: float) -> tuple[np.ndarray, list[int]]:
+def snap_to_planes(
+    mesh: TopoMesh, planes, edges, keys, edge_tris, *, tol: float, noise_tol: np.ndarray
+) -> tuple[np.ndarray, list[int], np.ndarray]:
     """Node heights with horizontal B-rep geometry lying on a plane put exactly on it.
 
-    Nodes within numerical noise (``NOISE_MM``) of a plane are on it whatever the geometry.
+    Nodes within ``noise_tol`` of a plane (numerical noise, or the float32 resolution of the STL) are on
+    it whatever the geometry; whether they count as above or below it is decided by the caller.
 
     Returns the heights, the indices of planes that hold a whole (flat) face, and the mask of nodes
     snapped as horizontal geometry.
@@ -290,7 +303,7 @@ def snap_to_planes(mesh: TopoMesh, planes, edges, keys, edge_tris, *, tol: float
         return z, [], none
     j = np.clip(np.searchsorted(planes, z), 1, planes.size) - 1
     j = np.where(np.abs(z - planes[np.minimum(j + 1, planes.size - 1)]) < np.abs(z - planes[j]), np.minimum(j + 1, planes.size - 1), j)
-    noise = np.abs(z - planes[j]) <= NOISE_MM
+    noise = np.abs(z - planes[j]) <= noise_tol[j]
     z[noise] = planes[j[noise]]
     near = np.abs(z - planes[j]) <= tol
     if not near.any():

@@ -165,3 +165,12 @@ def test_jobs_beyond_the_triangle_limit_are_refused_before_sampling(make_step, m
     monkeypatch.setattr(constants, "MAX_TRIANGLES", 1000)
     with pytest.raises(ResourceLimitExceeded, match="million triangles"):
         slice_step(make_step("cone", radius=10.0, height=10.0), SliceParams())
+
+
+@pytest.mark.parametrize("nurbs", [False, True])
+def test_planes_tangent_to_the_surface_give_a_closed_mesh(make_step, nurbs):
+    mesh = slice_step(make_step("tangent_features", nurbs=nurbs), SliceParams(layer_height=0.2))
+    assert_watertight(mesh)
+    assert_slab_property(mesh)
+    exact = mesh.stats["exact_volume_mm3"]
+    assert abs(mesh.stats["mesh_volume_mm3"] / exact - 1) < 0.01
