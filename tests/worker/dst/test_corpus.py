@@ -66,17 +66,31 @@ def _exact_section_points(solid, z: float, step: float = 0.02) -> np.ndarray:
     return np.array(pts).reshape(-1, 3)
 
 
-def _distance_to_segments(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """For each point, the distance (mm, xy) to the nearest of the segments a-b."""
-    out = np.empty(len(p))
-    ab = b - a
-    denom = np.maximum((ab * ab).sum(1), 1e-300)
-    for i in range(0, len(p), 256):
-        q = p[i : i + 256, None, :]
-        t = np.clip(((q - a[None]) * ab[None]).sum(2) / denom[None], 0, 1)
-        d = np.linalg.norm(q - (a[None] + t[..., None] * ab[None]), axis=2)
-        out[i : i + 256] = d.min(axis=1)
-    return out
+def _distance_to_segments(p: np.ndarray, a: np.ndarray, b: np.ndarray, k: int = 8) -> np.ndarray:
+    """For each point, the distance (mm, xy) to the nearest of the segments a-b.
+
+    Candidates are the ``k`` segments with the nearest midpoints (a KD-tree); with segments no longer
+    than the budget this finds the nearest one, and a miss can only overstate a distance.
+    """
+    from scipy.spatial import cKDTree
+
+    k = min(k, len(a))
+    _, idx = cKDTree(0.5 * (a + b)).query(p, k=k)
+    idx = idx.reshape(len(p), k)
+    sa, sb = a[idx], b[idx]
+    ab = sb - sa
+    denom = np.maximum((ab * ab).sum(2), 1e-300)
+    t = np.clip(((p[:, None, :] - sa) * ab).sum(2) / denom, 0, 1)
+    return np.linalg.norm(p[:, None, :] - (sa + t[..., None] * ab), axis=2).min(axis=1)
+
+
+def _distance_to_brep(p: np.ndarray, solids) -> float:
+    from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeVertex
+    from OCP.BRepExtrema import BRepExtrema_DistShapeShape
+    from OCP.gp import gp_Pnt
+
+    vertex = BRepBuilderAPI_MakeVertex(gp_Pnt(*p)).Vertex()
+    return min(BRepExtrema_DistShapeShape(vertex, s).Value() for s in solids)
 
 
 def _check_against_exact_sections(mesh) -> None:
@@ -97,8 +111,17 @@ def _check_against_exact_sections(mesh) -> None:
         assert np.quantile(d, 0.999) <= mesh.params.chord_error + 1e-3, f"plane {j}: exact section far from rings"
         # rings -> exact: each ring vertex is on the exact section
         ring_v = np.unique(edges[sel].ravel())
-        dv = _distance_to_segments(mesh.vertices[ring_v, :2], exact[:-1], exact[1:])
-        assert np.median(dv) < 0.02 and np.quantile(dv, 0.99) < 0.05, f"plane {j}: ring vertex off the section"
+        from scipy.spatial import cKDTree
+
+        dv, _ = cKDTree(exact).query(mesh.vertices[ring_v, :2])  # exact points are 0.02 mm apart
+        # OCCT's section can come back incomplete on B-spline files (DST.md section 7): a ring vertex
+        # far from its samples is measured against the B-rep itself
+        far = ring_v[dv > 0.02]
+        assert len(far) < 0.05 * len(ring_v), f"plane {j}: {len(far)} ring vertices far from the exact section"
+        for vid in far[:: max(1, len(far) // 40)]:
+            p = mesh.vertices[vid].copy()
+            p[2] = zw
+            assert _distance_to_brep(p, mesh.part.solids) < RING_TOL_MM, f"plane {j}: ring vertex off the B-rep"
 
 
 def _case(p: Path):
