@@ -87,6 +87,8 @@ class _Run:
     start: int  # vertex id of the exact start point
     end: int  # vertex id of the exact end point
     n_seg: int  # initial number of segments
+    zc: float  # world height of the plane, mm
+    plane: int  # plane index
 
 
 class RingSampler:
@@ -189,8 +191,32 @@ class RingSampler:
         return s
 
     # --- loops -------------------------------------------------------------------------------------
-    def free_loop(self, li: int) -> list[int]:
-        """Re-sampled ring of a free loop: corners kept, budget-driven points between them."""
+    def free_loops(self, loop_ids: list[int]) -> dict[int, list[int]]:
+        """Re-sampled rings of free loops (corners kept, budget-driven points between them), all in one batch."""
+        out: dict[int, list[int]] = {}
+        runs: list[_Run] = []
+        owner: list[int] = []
+        for li in loop_ids:
+            loop_runs = self._loop_runs(li, min_seg=1)
+            runs.extend(loop_runs)
+            owner.extend([li] * len(loop_runs))
+        pieces: dict[int, list[int]] = {li: [] for li in loop_ids}
+        for li, run_pts in zip(owner, self._sample_runs(runs), strict=True):
+            pieces[li].extend(run_pts[:-1])
+        for li in loop_ids:
+            ring = _dedupe_cyclic(pieces[li], self.pool)
+            if len(ring) < MIN_LOOP_VERTICES:
+                # a tiny loop (a dome just below its top): sample it with at least three segments
+                runs = self._loop_runs(li, min_seg=MIN_LOOP_VERTICES)
+                ring = _dedupe_cyclic([v for r in self._sample_runs(runs) for v in r[:-1]], self.pool)
+                if len(ring) < MIN_LOOP_VERTICES:
+                    zc = float(self.topo.planes[self.topo.loops[li][0]])
+                    raise TessellationError(f"a section loop at z={zc:.4f} mm collapses to fewer than 3 points")
+            out[li] = ring
+        return out
+
+    def _loop_runs(self, li: int, *, min_seg: int) -> list[_Run]:
+        """The runs of a free loop: the pieces of its section between consecutive corners."""
         topo = self.topo
         j, cross = topo.loops[li]
         zc = float(topo.planes[j])
@@ -199,25 +225,21 @@ class RingSampler:
         faces = self.mesh.tri_face[seg_tri]
         corner = topo.cross_is_corner[cross] | (faces != np.roll(faces, 1))
         starts = np.flatnonzero(corner).tolist() or [0]
-        for min_seg in (1, MIN_LOOP_VERTICES):
-            runs = []
-            for r, i0 in enumerate(starts):
-                i1 = starts[(r + 1) % len(starts)]
-                count = (i1 - i0) % n or n
-                idx = (i0 + np.arange(count + 1)) % n
-                cs = cross[idx]
-                pts = topo.cross_xyz[cs].copy()
-                uv = np.vstack([topo.cross_uv_start[cs[:-1]], topo.cross_uv_end[cs[-2:-1]]])
-                start, end = self.crossing(int(cs[0])), self.crossing(int(cs[-1]))
-                pts[0], pts[-1] = self.pool.xyz[start], self.pool.xyz[end]
-                s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
-                n_seg = max(min_seg if len(starts) == 1 else 1, math.ceil(s[-1] / (self.seg_len * SEGMENT_FILL)))
-                runs.append(_Run(int(faces[i0]), s, uv, 2.0 * float(self.tri_uv_scale[seg_tri[idx[:-1]]].max()), start, end, n_seg))
-            ring = [v for run_pts in self._sample_runs(runs, j, zc) for v in run_pts[:-1]]
-            ring = _dedupe_cyclic(ring, self.pool)
-            if len(ring) >= MIN_LOOP_VERTICES:
-                return ring
-        raise TessellationError(f"a section loop at z={zc:.4f} mm collapses to fewer than 3 points")
+        runs = []
+        for r, i0 in enumerate(starts):
+            i1 = starts[(r + 1) % len(starts)]
+            count = (i1 - i0) % n or n
+            idx = (i0 + np.arange(count + 1)) % n
+            cs = cross[idx]
+            pts = topo.cross_xyz[cs].copy()
+            uv = np.vstack([topo.cross_uv_start[cs[:-1]], topo.cross_uv_end[cs[-2:-1]]])
+            start, end = self.crossing(int(cs[0])), self.crossing(int(cs[-1]))
+            pts[0], pts[-1] = self.pool.xyz[start], self.pool.xyz[end]
+            s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+            n_seg = max(min_seg if len(starts) == 1 else 1, math.ceil(s[-1] / (self.seg_len * SEGMENT_FILL)))
+            step = 2.0 * float(self.tri_uv_scale[seg_tri[idx[:-1]]].max())
+            runs.append(_Run(int(faces[i0]), s, uv, step, start, end, n_seg, zc, j))
+        return runs
 
     def pinned_loop(self, li: int) -> list[int]:
         """Ring of a pinned loop: every topology crossing, plus points where a segment breaks the budget."""
@@ -233,8 +255,8 @@ class RingSampler:
             d = float(np.linalg.norm(np.subtract(self.pool.xyz[end], self.pool.xyz[start])))
             uv = np.stack([topo.cross_uv_start[c], topo.cross_uv_end[c]])
             t = int(topo.seg_tri[c])
-            runs.append(_Run(int(self.mesh.tri_face[t]), np.array([0.0, d]), uv, 2.0 * float(self.tri_uv_scale[t]), start, end, 1))
-        for c, run_pts in zip(todo, self._sample_runs(runs, j, zc), strict=True):
+            runs.append(_Run(int(self.mesh.tri_face[t]), np.array([0.0, d]), uv, 2.0 * float(self.tri_uv_scale[t]), start, end, 1, zc, j))
+        for c, run_pts in zip(todo, self._sample_runs(runs), strict=True):
             inner = run_pts[1:-1]
             self.subdiv[c] = inner
             na, nb = int(topo.cross_node[c]), int(topo.cross_node[topo.succ[c]])
@@ -251,7 +273,7 @@ class RingSampler:
         return self.subdiv[c]
 
     # --- the batched sampler -------------------------------------------------------------------------
-    def _sample_runs(self, runs: list[_Run], plane: int, zc: float) -> list[list[int]]:
+    def _sample_runs(self, runs: list[_Run]) -> list[list[int]]:
         """Vertex ids of each run from start to end inclusive, within the length and chord budgets."""
         if not runs:
             return []
@@ -264,11 +286,12 @@ class RingSampler:
         big_v = np.concatenate([r.uv[:, 1] for r in runs])
         run_face = np.array([r.face for r in runs])
         run_step = np.array([r.max_step for r in runs])
+        run_z = np.array([r.zc for r in runs])
 
         def solve(run_idx: np.ndarray, s: np.ndarray) -> np.ndarray:
             g = s + shift[run_idx]
             u, v = np.interp(g, big_s, big_u), np.interp(g, big_s, big_v)
-            return self._newton(run_face[run_idx], u, v, zc, run_step[run_idx])
+            return self._newton(run_face[run_idx], u, v, run_z[run_idx], run_step[run_idx])
 
         # Initial points at equal arc length.
         run_of, s_of = [], []
@@ -323,7 +346,7 @@ class RingSampler:
                 if length[g] > self.stats.max_gap_mm:
                     self.stats.max_gap_mm = float(length[g])
                     self.stats.max_gap_at = (
-                        f"z={zc:.4f} mm, face {run_face[ri[g]] + 1}, from {np.round(pa[g], 4).tolist()} "
+                        f"z={run_z[ri[g]]:.4f} mm, face {run_face[ri[g]] + 1}, from {np.round(pa[g], 4).tolist()} "
                         f"to {np.round(pb[g], 4).tolist()}"
                     )
                 bad &= ~gap
@@ -363,14 +386,14 @@ class RingSampler:
                 nxt.extend((ri[q], x[0], x[1], y[0], y[1]) for x, y in zip(chain[:-1], chain[1:], strict=True))
             pending = nxt
         else:
-            raise TessellationError(f"section curves at z={zc:.4f} mm cannot meet the chord budget{worst}")
+            raise TessellationError(f"section curves cannot meet the chord budget{worst}")
 
         out = []
-        for p in pts:
+        for r, p in zip(runs, pts, strict=True):
             p.sort(key=lambda item: item[0])
             ids = []
             for _s, xyz, vid in p:
-                ids.append(vid if vid >= 0 else self.pool.add((float(xyz[0]), float(xyz[1]), zc), plane))
+                ids.append(vid if vid >= 0 else self.pool.add((float(xyz[0]), float(xyz[1]), r.zc), r.plane))
             out.append(ids)
         return out
 
@@ -397,7 +420,7 @@ class RingSampler:
         return res
 
     def _newton(
-        self, fidx: np.ndarray, u: np.ndarray, v: np.ndarray, zc: float, max_step: np.ndarray
+        self, fidx: np.ndarray, u: np.ndarray, v: np.ndarray, zc, max_step: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         """Batched Newton on ``z(u, v) = zc``, each point in its own face.
 
@@ -412,6 +435,7 @@ class RingSampler:
         """
         n = len(u)
         self.stats.newton_solves += n
+        zc = np.broadcast_to(np.asarray(zc, dtype=np.float64), (n,))
         out = np.full((n, 3), np.nan)
         act = np.arange(n)
         u, v = u.astype(np.float64).copy(), v.astype(np.float64).copy()
@@ -421,7 +445,7 @@ class RingSampler:
             if not act.size:
                 break
             res = self._d1(fidx[act], u[act], v[act], ads, p, du, dv)
-            f_ = res[:, 2] - zc
+            f_ = res[:, 2] - zc[act]
             done = np.abs(f_) < LEVEL_TOL_MM
             out[act[done]] = res[done, :3]
             keep = ~done

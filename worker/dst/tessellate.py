@@ -26,9 +26,9 @@ def tessellate_solid(sampler: RingSampler) -> tuple[list[tuple[int, int, int]], 
     topo: SectionTopology = sampler.topo
     annulus = topo.comp_is_annulus
     free = annulus[topo.loop_below] & annulus[topo.loop_above]
-    rings: dict[int, list[int]] = {}
-    for li in range(len(topo.loops)):
-        rings[li] = sampler.free_loop(li) if free[li] else sampler.pinned_loop(li)
+    rings: dict[int, list[int]] = sampler.free_loops(np.flatnonzero(free).tolist())
+    for li in np.flatnonzero(~free).tolist():
+        rings[li] = sampler.pinned_loop(li)
 
     out: list[tuple[int, int, int]] = []
     for comp in np.flatnonzero(annulus).tolist():

@@ -13,7 +13,17 @@ from worker.dst.analytic import evaluator
 
 def _faces(kind):
     import build123d as bd
+    from OCP.BRepBuilderAPI import BRepBuilderAPI_NurbsConvert
 
+    if kind.startswith("nurbs-"):
+        base = {"nurbs-sphere": bd.Sphere(5), "nurbs-torus": bd.Torus(8, 2), "nurbs-box": bd.Box(3, 4, 5)}[kind]
+        base = base.rotate(bd.Axis((1, 2, 3), (0.3, -0.5, 0.8)), 37).translate((5, -7, 11))
+        converted = BRepBuilderAPI_NurbsConvert(base.wrapped, True).Shape()
+        exp = TopExp_Explorer(converted, TopAbs_FACE)
+        while exp.More():
+            yield TopoDS.Face(exp.Current())
+            exp.Next()
+        return
     shape = {
         "plane": bd.Box(3, 4, 5),
         "cylinder": bd.Cylinder(3, 7),
@@ -28,7 +38,7 @@ def _faces(kind):
         exp.Next()
 
 
-@pytest.mark.parametrize("kind", ["plane", "cylinder", "cone", "sphere", "torus"])
+@pytest.mark.parametrize("kind", ["plane", "cylinder", "cone", "sphere", "torus", "nurbs-sphere", "nurbs-torus", "nurbs-box"])
 def test_closed_form_matches_occt(kind):
     rng = np.random.default_rng(7)
     checked = 0
@@ -42,8 +52,8 @@ def test_closed_form_matches_occt(kind):
         p, du, dv = gp_Pnt(), gp_Vec(), gp_Vec()
         for i in range(50):
             ad.D1(u[i], v[i], p, du, dv)
-            np.testing.assert_allclose(P[i], p.Coord(), atol=1e-12, rtol=1e-12)
-            np.testing.assert_allclose(Pu[i], du.Coord(), atol=1e-12, rtol=1e-12)
-            np.testing.assert_allclose(Pv[i], dv.Coord(), atol=1e-12, rtol=1e-12)
+            np.testing.assert_allclose(P[i], p.Coord(), atol=1e-10, rtol=1e-10)
+            np.testing.assert_allclose(Pu[i], du.Coord(), atol=1e-9, rtol=1e-9)
+            np.testing.assert_allclose(Pv[i], dv.Coord(), atol=1e-9, rtol=1e-9)
         checked += 1
     assert checked
