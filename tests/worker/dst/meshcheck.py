@@ -20,7 +20,9 @@ def ring_edges(mesh) -> tuple[np.ndarray, np.ndarray]:
     """Undirected edges with both ends on the same plane, and that plane's index."""
     t = mesh.triangles
     e = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
-    e = np.unique(e, axis=0)
+    n = len(mesh.vertices)
+    keys = np.unique(e[:, 0] * n + e[:, 1])  # integer keys: far faster than unique rows
+    e = np.stack([keys // n, keys % n], axis=1)
     vp = mesh.vertex_plane
     same = (vp[e[:, 0]] >= 0) & (vp[e[:, 0]] == vp[e[:, 1]])
     return e[same], vp[e[same, 0]]
