@@ -48,58 +48,45 @@ def evaluator(ad: BRepAdaptor_Surface) -> Evaluator | None:
             return o + u[:, None] * x + v[:, None] * y, np.tile(x, (n, 1)), np.tile(y, (n, 1))
 
         return plane
+    # Cylinder, cone, sphere and torus are surfaces of revolution about the frame's z axis:
+    # P = o + rho(v) (cos u x + sin u y) + h(v) z, so only the profile (rho, h, rho', h') differs.
     if kind == GeomAbs_Cylinder:
         cyl = ad.Cylinder()
-        o, x, y, z = _frame(cyl.Position())
         r = cyl.Radius()
-
-        def cylinder(u, v):
-            c, s = np.cos(u)[:, None], np.sin(u)[:, None]
-            radial = c * x + s * y
-            return o + r * radial + v[:, None] * z, r * (-s * x + c * y), np.tile(z, (len(u), 1))
-
-        return cylinder
+        return _revolution(cyl.Position(), lambda v: (np.full_like(v, r), v, np.zeros_like(v), np.ones_like(v)))
     if kind == GeomAbs_Cone:
         cone = ad.Cone()
-        o, x, y, z = _frame(cone.Position())
-        r, a = cone.RefRadius(), cone.SemiAngle()
-        sa, ca = np.sin(a), np.cos(a)
-
-        def cone_(u, v):
-            c, s = np.cos(u)[:, None], np.sin(u)[:, None]
-            radial = c * x + s * y
-            rr = (r + v * sa)[:, None]
-            return o + rr * radial + (v * ca)[:, None] * z, rr * (-s * x + c * y), sa * radial + ca * z
-
-        return cone_
+        r, sa, ca = cone.RefRadius(), np.sin(cone.SemiAngle()), np.cos(cone.SemiAngle())
+        return _revolution(cone.Position(), lambda v: (r + v * sa, v * ca, np.full_like(v, sa), np.full_like(v, ca)))
     if kind == GeomAbs_Sphere:
         sph = ad.Sphere()
-        o, x, y, z = _frame(sph.Position())
         r = sph.Radius()
-
-        def sphere(u, v):
-            c, s = np.cos(u)[:, None], np.sin(u)[:, None]
-            cv, sv = np.cos(v)[:, None], np.sin(v)[:, None]
-            radial = c * x + s * y
-            return o + r * cv * radial + r * sv * z, r * cv * (-s * x + c * y), -r * sv * radial + r * cv * z
-
-        return sphere
+        return _revolution(
+            sph.Position(), lambda v: (r * np.cos(v), r * np.sin(v), -r * np.sin(v), r * np.cos(v))
+        )
     if kind == GeomAbs_Torus:
         tor = ad.Torus()
-        o, x, y, z = _frame(tor.Position())
         big, small = tor.MajorRadius(), tor.MinorRadius()
-
-        def torus(u, v):
-            c, s = np.cos(u)[:, None], np.sin(u)[:, None]
-            cv, sv = np.cos(v)[:, None], np.sin(v)[:, None]
-            radial = c * x + s * y
-            rr = big + small * cv
-            return o + rr * radial + small * sv * z, rr * (-s * x + c * y), -small * sv * radial + small * cv * z
-
-        return torus
+        return _revolution(
+            tor.Position(),
+            lambda v: (big + small * np.cos(v), small * np.sin(v), -small * np.sin(v), small * np.cos(v)),
+        )
     if kind == GeomAbs_BSplineSurface:
         return _bspline(ad)
     return None
+
+
+def _revolution(ax3, profile) -> Evaluator:
+    """Surface of revolution about ``ax3``'s z axis with meridian ``profile(v) -> (rho, h, rho', h')``."""
+    o, x, y, z = _frame(ax3)
+
+    def evaluate(u, v):
+        c, s = np.cos(u)[:, None], np.sin(u)[:, None]
+        radial, tangent = c * x + s * y, -s * x + c * y
+        rho, h, drho, dh = (a[:, None] for a in profile(v))
+        return o + rho * radial + h * z, rho * tangent, drho * radial + dh * z
+
+    return evaluate
 
 
 def _bspline(ad: BRepAdaptor_Surface) -> Evaluator:
