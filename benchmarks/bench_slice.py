@@ -30,7 +30,14 @@ def _dst(path: str, layer: float, q) -> None:
     t = time.perf_counter()
     mesh = slice_step(path, SliceParams(layer_height=layer))
     sec = time.perf_counter() - t
-    q.put({"seconds": sec, "triangles": len(mesh.triangles), "rss_mb": _rss_mb(), "stages": mesh.stats["timings_s"]})
+    q.put(
+        {
+            "seconds": sec,
+            "triangles": len(mesh.triangles),
+            "rss_mb": _rss_mb(),
+            "stages": mesh.stats["timings_s"],
+        }
+    )
 
 
 def _conventional(path: str, layer: float, q) -> None:

@@ -17,11 +17,18 @@ def build_part(kind: str, **kw):
 
     if kind == "hemisphere":
         r = kw.get("radius", 20.0)
-        return bd.Sphere(r) - bd.Box(3 * r, 3 * r, 3 * r, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MAX))
+        return bd.Sphere(r) - bd.Box(
+            3 * r, 3 * r, 3 * r, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MAX)
+        )
     if kind == "torus":
         return bd.Torus(kw.get("major", 15.0), kw.get("minor", 5.0))
     if kind == "cone":
-        return bd.Cone(kw.get("radius", 10.0), 0.0, kw.get("height", 20.0), align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MIN))
+        return bd.Cone(
+            kw.get("radius", 10.0),
+            0.0,
+            kw.get("height", 20.0),
+            align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MIN),
+        )
     if kind == "tube":
         outer = bd.Cylinder(kw.get("outer", 8.0), kw.get("length", 30.0))
         inner = bd.Cylinder(kw.get("inner", 4.0), kw.get("length", 30.0) + 2)
@@ -71,7 +78,9 @@ def make_step(tmp_path):
 
     def factory(kind: str, *, nurbs: bool = True, unit: str | None = None, **kw) -> Path:
         counter[0] += 1
-        return write_step(build_part(kind, **kw), tmp_path / f"{kind}_{counter[0]}.step", nurbs=nurbs, unit=unit)
+        return write_step(
+            build_part(kind, **kw), tmp_path / f"{kind}_{counter[0]}.step", nurbs=nurbs, unit=unit
+        )
 
     return factory
 

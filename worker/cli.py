@@ -22,13 +22,23 @@ def _add_slice_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("input", help="STEP file (AP203, AP214, AP242)")
     p.add_argument("-o", "--output", required=True, help="STL file to write")
     p.add_argument("--layer-height", type=float, default=0.2, help="layer height h, mm (default 0.2)")
-    p.add_argument("--first-layer-height", type=float, default=None, help="first-layer height h0, mm (default h)")
-    p.add_argument("--mode", choices=["middle", "inclusive", "exclusive"], default="middle",
-                   help="slicing tolerance: mid-layer planes (default) or Cura's layer-boundary modes")
+    p.add_argument(
+        "--first-layer-height", type=float, default=None, help="first-layer height h0, mm (default h)"
+    )
+    p.add_argument(
+        "--mode",
+        choices=["middle", "inclusive", "exclusive"],
+        default="middle",
+        help="slicing tolerance: mid-layer planes (default) or Cura's layer-boundary modes",
+    )
     p.add_argument("--segment-length", type=float, default=0.8, help="longest ring segment, mm (default 0.8)")
     p.add_argument("--chord-error", type=float, default=0.025, help="largest chord error, mm (default 0.025)")
-    p.add_argument("--target-slicer", choices=["cura", "prusa"], default=None,
-                   help="write ring heights exactly as this slicer computes its planes")
+    p.add_argument(
+        "--target-slicer",
+        choices=["cura", "prusa"],
+        default=None,
+        help="write ring heights exactly as this slicer computes its planes",
+    )
     p.add_argument("--ascii", action="store_true", help="write ASCII STL instead of binary")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
     p.set_defaults(func=_cmd_slice)
@@ -106,7 +116,10 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as exc:  # a bug: one line, unless --debug asks for the traceback
         if args.debug:
             raise
-        print(f"dst: internal error: {type(exc).__name__}: {exc} (run with --debug for details)", file=sys.stderr)
+        print(
+            f"dst: internal error: {type(exc).__name__}: {exc} (run with --debug for details)",
+            file=sys.stderr,
+        )
         return EXIT_INTERNAL
 
 

@@ -11,12 +11,16 @@ import trimesh
 
 
 def run_dst(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "worker.cli", *args], capture_output=True, text=True, timeout=600)
+    return subprocess.run(
+        [sys.executable, "-m", "worker.cli", *args], capture_output=True, text=True, timeout=600
+    )
 
 
 def test_slice_writes_a_binary_stl_and_reports_progress(make_step, tmp_path):
     out = tmp_path / "part.stl"
-    res = run_dst("slice", str(make_step("cone", radius=6, height=4)), "-o", str(out), "--layer-height", "0.25")
+    res = run_dst(
+        "slice", str(make_step("cone", radius=6, height=4)), "-o", str(out), "--layer-height", "0.25"
+    )
     assert res.returncode == 0, res.stderr
     assert "reading STEP" in res.stderr and "wrote" in res.stderr
     mesh = trimesh.load(out, file_type="stl")
@@ -78,6 +82,13 @@ def test_missing_input_file(tmp_path):
 def test_help_lists_the_options():
     res = run_dst("slice", "--help")
     assert res.returncode == 0
-    for opt in ("--layer-height", "--first-layer-height", "--mode", "--segment-length", "--chord-error",
-                "--target-slicer", "--ascii"):
+    for opt in (
+        "--layer-height",
+        "--first-layer-height",
+        "--mode",
+        "--segment-length",
+        "--chord-error",
+        "--target-slicer",
+        "--ascii",
+    ):
         assert opt in res.stdout

@@ -53,11 +53,15 @@ def evaluator(ad: BRepAdaptor_Surface) -> Evaluator | None:
     if kind == GeomAbs_Cylinder:
         cyl = ad.Cylinder()
         r = cyl.Radius()
-        return _revolution(cyl.Position(), lambda v: (np.full_like(v, r), v, np.zeros_like(v), np.ones_like(v)))
+        return _revolution(
+            cyl.Position(), lambda v: (np.full_like(v, r), v, np.zeros_like(v), np.ones_like(v))
+        )
     if kind == GeomAbs_Cone:
         cone = ad.Cone()
         r, sa, ca = cone.RefRadius(), np.sin(cone.SemiAngle()), np.cos(cone.SemiAngle())
-        return _revolution(cone.Position(), lambda v: (r + v * sa, v * ca, np.full_like(v, sa), np.full_like(v, ca)))
+        return _revolution(
+            cone.Position(), lambda v: (r + v * sa, v * ca, np.full_like(v, sa), np.full_like(v, ca))
+        )
     if kind == GeomAbs_Sphere:
         sph = ad.Sphere()
         r = sph.Radius()

@@ -19,13 +19,12 @@ import math
 
 from OCP.BRepAdaptor import BRepAdaptor_Curve, BRepAdaptor_Surface
 from OCP.BRepClass import BRepClass_FaceClassifier
+from OCP.Extrema import Extrema_ExtPC
 from OCP.gp import gp_Pnt, gp_Pnt2d, gp_Vec
 from OCP.TopAbs import TopAbs_IN, TopAbs_ON
-from OCP.Extrema import Extrema_ExtPC
 from scipy.optimize import brentq
 
 from worker.dst.constants import LEVEL_TOL_MM, NEWTON_MAX_ITER, ROOT_XTOL
-
 
 _RTOL = 4.5 * 2.220446049250313e-16  # brentq refuses anything below 4 * machine epsilon
 
@@ -68,7 +67,9 @@ class FaceEval:
         state = BRepClass_FaceClassifier(self.face, gp_Pnt2d(u, v), tol).State()
         return state in (TopAbs_IN, TopAbs_ON)
 
-    def level_point(self, u: float, v: float, c: float, max_step: float) -> tuple[float, float, float, float, float]:
+    def level_point(
+        self, u: float, v: float, c: float, max_step: float
+    ) -> tuple[float, float, float, float, float]:
         """Newton from seed (u, v) to a point at height ``c`` on the surface.
 
         ``max_step`` bounds each (u, v) step (a trust region of the order of the seed's distance to the

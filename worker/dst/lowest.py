@@ -28,7 +28,7 @@ def snap_extremes(meshes: list[TopoMesh]) -> tuple[float, float]:
     """Move one node of one mesh onto the exact lowest point and one onto the highest. Returns (zmin, zmax)."""
     lo = _extreme(meshes, sign=1.0)
     hi = _extreme(meshes, sign=-1.0)
-    for (mi, node, point) in (lo, hi):
+    for mi, node, point in (lo, hi):
         meshes[mi].xyz[node] = point
     return float(lo[2][2]), float(hi[2][2])
 
@@ -63,7 +63,9 @@ def _extreme(meshes: list[TopoMesh], *, sign: float) -> tuple[int, int, np.ndarr
     return best
 
 
-def _face_extreme(mesh: TopoMesh, f: int, tri_mask: np.ndarray, sign: float) -> list[tuple[float, np.ndarray]]:
+def _face_extreme(
+    mesh: TopoMesh, f: int, tri_mask: np.ndarray, sign: float
+) -> list[tuple[float, np.ndarray]]:
     fe = mesh.faces[f]
     sel = np.flatnonzero(tri_mask & (mesh.tri_face == f))
     corners = mesh.tris[sel].ravel()
@@ -75,8 +77,14 @@ def _face_extreme(mesh: TopoMesh, f: int, tri_mask: np.ndarray, sign: float) -> 
         z, zu, zv = fe.z_and_grad(float(x[0]), float(x[1]))
         return sign * z, sign * np.array([zu, zv])
 
-    res = minimize(fun, np.array([u0, v0]), jac=True, method="L-BFGS-B",
-                   bounds=[(fe.u0, fe.u1), (fe.v0, fe.v1)], options={"ftol": 1e-15, "gtol": 1e-12})
+    res = minimize(
+        fun,
+        np.array([u0, v0]),
+        jac=True,
+        method="L-BFGS-B",
+        bounds=[(fe.u0, fe.u1), (fe.v0, fe.v1)],
+        options={"ftol": 1e-15, "gtol": 1e-12},
+    )
     u, v = (float(x) for x in res.x)
     if not fe.contains(u, v):
         return []
@@ -90,8 +98,12 @@ def _edge_extreme(mesh: TopoMesh, ei: int, sign: float) -> tuple[float, np.ndarr
     h = np.array([sign * ev.ad.Value(float(x)).Z() for x in s])
     i = int(np.argmin(h))
     lo, hi = s[max(i - 1, 0)], s[min(i + 1, len(s) - 1)]
-    res = minimize_scalar(lambda x: sign * ev.ad.Value(float(x)).Z(), bounds=(lo, hi), method="bounded",
-                          options={"xatol": 1e-13 * max(1.0, abs(ev.s1 - ev.s0))})
+    res = minimize_scalar(
+        lambda x: sign * ev.ad.Value(float(x)).Z(),
+        bounds=(lo, hi),
+        method="bounded",
+        options={"xatol": 1e-13 * max(1.0, abs(ev.s1 - ev.s0))},
+    )
     x = float(res.x) if sign * ev.ad.Value(float(res.x)).Z() <= h[i] else float(s[i])
     p = ev.ad.Value(x)
     pt = np.array([p.X(), p.Y(), p.Z()])

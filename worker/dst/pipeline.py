@@ -70,7 +70,9 @@ def slice_step(
     return slice_part(part, params, progress=report, t0=t0)
 
 
-def slice_part(part: LoadedPart, params: SliceParams, *, progress: Progress | None = None, t0: float | None = None) -> DstMesh:
+def slice_part(
+    part: LoadedPart, params: SliceParams, *, progress: Progress | None = None, t0: float | None = None
+) -> DstMesh:
     report = progress or (lambda stage, frac: None)
     t0 = time.perf_counter() if t0 is None else t0
     timings: dict[str, float] = {"read": time.perf_counter() - t0}
@@ -85,7 +87,9 @@ def slice_part(part: LoadedPart, params: SliceParams, *, progress: Progress | No
     for si, solid in enumerate(part.solids):
         report(f"meshing solid {si + 1}/{len(part.solids)}", 0.1 * si / len(part.solids))
         meshes.append(
-            build_topomesh(solid, deflection=deflection, angular=C.TOPO_ANGULAR_RAD, merge_tol=C.MERGE_TOL_REL * diag)
+            build_topomesh(
+                solid, deflection=deflection, angular=C.TOPO_ANGULAR_RAD, merge_tol=C.MERGE_TOL_REL * diag
+            )
         )
     timings["topomesh"] = time.perf_counter() - t
 
@@ -117,14 +121,24 @@ def slice_part(part: LoadedPart, params: SliceParams, *, progress: Progress | No
     flat_planes: set[int] = set()
     all_tris: list[tuple[int, int, int]] = []
     stats: dict = {"solids": len(part.solids), "planes": len(planes), "height_mm": height}
-    sampling_totals = {"newton_solves": 0, "edge_roots": 0, "fallbacks": 0, "tolerance_gaps": 0, "max_gap_mm": 0.0,
-                       "tangent_segments": 0, "newton_failures": 0, "max_gap_at": ""}
+    sampling_totals = {
+        "newton_solves": 0,
+        "edge_roots": 0,
+        "fallbacks": 0,
+        "tolerance_gaps": 0,
+        "max_gap_mm": 0.0,
+        "tangent_segments": 0,
+        "newton_failures": 0,
+        "max_gap_at": "",
+    }
     for si, (mesh, topo) in enumerate(zip(meshes, topos, strict=True)):
         frac = 0.1 + 0.85 * si / len(meshes)
         flat_planes.update(topo.flat_planes)
         report(f"sampling solid {si + 1}/{len(part.solids)}", frac)
         t = time.perf_counter()
-        sampler = RingSampler(mesh, topo, pool, segment_length=params.segment_length, chord_error=params.chord_error)
+        sampler = RingSampler(
+            mesh, topo, pool, segment_length=params.segment_length, chord_error=params.chord_error
+        )
         tris, tstats = tessellate_solid(sampler)
         timings["tessellate"] = timings.get("tessellate", 0.0) + time.perf_counter() - t
         all_tris.extend(tris)
@@ -136,7 +150,9 @@ def slice_part(part: LoadedPart, params: SliceParams, *, progress: Progress | No
                 continue
             if k == "max_gap_mm" and value > sampling_totals[k]:
                 sampling_totals["max_gap_at"] = sampler.stats.max_gap_at
-            sampling_totals[k] = max(sampling_totals[k], value) if k.startswith("max_") else sampling_totals[k] + value
+            sampling_totals[k] = (
+                max(sampling_totals[k], value) if k.startswith("max_") else sampling_totals[k] + value
+            )
     stats.update(sampling_totals)
 
     report("checking mesh", 0.95)

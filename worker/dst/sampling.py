@@ -94,7 +94,15 @@ class _Run:
 class RingSampler:
     """Computes and caches the exact ring vertices of one solid."""
 
-    def __init__(self, mesh: TopoMesh, topo: SectionTopology, pool: VertexPool, *, segment_length: float, chord_error: float):
+    def __init__(
+        self,
+        mesh: TopoMesh,
+        topo: SectionTopology,
+        pool: VertexPool,
+        *,
+        segment_length: float,
+        chord_error: float,
+    ):
         self.mesh, self.topo, self.pool = mesh, topo, pool
         self.seg_len = segment_length
         self.chord = chord_error
@@ -118,7 +126,9 @@ class RingSampler:
         vid = self.node_vid.get(n)
         if vid is None:
             p = self.mesh.xyz[n]
-            vid = self.pool.add((float(p[0]), float(p[1]), float(self.topo.z[n])), int(self.topo.node_plane[n]))
+            vid = self.pool.add(
+                (float(p[0]), float(p[1]), float(self.topo.z[n])), int(self.topo.node_plane[n])
+            )
             self.node_vid[n] = vid
         return vid
 
@@ -162,9 +172,13 @@ class RingSampler:
             za, zb = mesh.xyz[a, 2], mesh.xyz[b, 2]
             frac = min(1.0, max(0.0, (zc - za) / (zb - za))) if zb != za else 0.5
             seed = np.array([[ua + frac * (ub - ua), va + frac * (vb - va)]])
-            pts, ok = self._newton(np.array([face]), seed[:, 0], seed[:, 1], zc, np.array([2.0 * self.tri_uv_scale[t]]))
+            pts, ok = self._newton(
+                np.array([face]), seed[:, 0], seed[:, 1], zc, np.array([2.0 * self.tri_uv_scale[t]])
+            )
             if not ok[0]:
-                raise TessellationError(f"no exact point of face {face + 1} at z={zc:.4f} mm near a topology edge")
+                raise TessellationError(
+                    f"no exact point of face {face + 1} at z={zc:.4f} mm near a topology edge"
+                ) from None
             x, y, _ = pts[0]
         return x, y, zc
 
@@ -211,7 +225,9 @@ class RingSampler:
                 ring = _dedupe_cyclic([v for r in self._sample_runs(runs) for v in r[:-1]], self.pool)
                 if len(ring) < MIN_LOOP_VERTICES:
                     zc = float(self.topo.planes[self.topo.loops[li][0]])
-                    raise TessellationError(f"a section loop at z={zc:.4f} mm collapses to fewer than 3 points")
+                    raise TessellationError(
+                        f"a section loop at z={zc:.4f} mm collapses to fewer than 3 points"
+                    )
             out[li] = ring
         return out
 
@@ -255,7 +271,19 @@ class RingSampler:
             d = float(np.linalg.norm(np.subtract(self.pool.xyz[end], self.pool.xyz[start])))
             uv = np.stack([topo.cross_uv_start[c], topo.cross_uv_end[c]])
             t = int(topo.seg_tri[c])
-            runs.append(_Run(int(self.mesh.tri_face[t]), np.array([0.0, d]), uv, 2.0 * float(self.tri_uv_scale[t]), start, end, 1, zc, j))
+            runs.append(
+                _Run(
+                    int(self.mesh.tri_face[t]),
+                    np.array([0.0, d]),
+                    uv,
+                    2.0 * float(self.tri_uv_scale[t]),
+                    start,
+                    end,
+                    1,
+                    zc,
+                    j,
+                )
+            )
         for c, run_pts in zip(todo, self._sample_runs(runs), strict=True):
             inner = run_pts[1:-1]
             self.subdiv[c] = inner
@@ -314,7 +342,11 @@ class RingSampler:
             pts[ri].append((float(r.s[-1]), np.array(self.pool.xyz[r.end]), r.end))
 
         # Segments to check: (run, sa, pa, sb, pb); refined level by level, all runs together.
-        pending = [(ri, a[0], a[1], b[0], b[1]) for ri, p in enumerate(pts) for a, b in zip(p[:-1], p[1:], strict=True)]
+        pending = [
+            (ri, a[0], a[1], b[0], b[1])
+            for ri, p in enumerate(pts)
+            for a, b in zip(p[:-1], p[1:], strict=True)
+        ]
         L, e = self.seg_len, self.chord
         worst = ""
         for _ in range(MAX_REFINE_ROUNDS):
@@ -353,13 +385,17 @@ class RingSampler:
             if not bad.any():
                 break
             q = int(np.argmax(np.where(bad, sag, -1.0)))
-            worst = (f" (face {run_face[ri[q]] + 1}: sag {sag[q]:.3g} mm over {length[q]:.3g} mm, "
-                     f"s {sa[q]:.6g}..{sb[q]:.6g} of {lengths[ri[q]]:.6g})")
-            m = np.maximum.reduce([
-                np.full(len(pending), 2),
-                np.ceil(length / (L * SEGMENT_FILL)).astype(int),
-                np.ceil(np.sqrt(sag / e) * 1.05).astype(int),
-            ])
+            worst = (
+                f" (face {run_face[ri[q]] + 1}: sag {sag[q]:.3g} mm over {length[q]:.3g} mm, "
+                f"s {sa[q]:.6g}..{sb[q]:.6g} of {lengths[ri[q]]:.6g})"
+            )
+            m = np.maximum.reduce(
+                [
+                    np.full(len(pending), 2),
+                    np.ceil(length / (L * SEGMENT_FILL)).astype(int),
+                    np.ceil(np.sqrt(sag / e) * 1.05).astype(int),
+                ]
+            )
             m = np.minimum(m, MAX_SUBDIVISION)
             b_idx = np.flatnonzero(bad)
             new_run, new_s = [], []
@@ -383,7 +419,9 @@ class RingSampler:
                 if len(chain) == 2:  # no new point could be placed: keep it as a tangent segment
                     self.stats.tangent_segments += 1
                     continue
-                nxt.extend((ri[q], x[0], x[1], y[0], y[1]) for x, y in zip(chain[:-1], chain[1:], strict=True))
+                nxt.extend(
+                    (ri[q], x[0], x[1], y[0], y[1]) for x, y in zip(chain[:-1], chain[1:], strict=True)
+                )
             pending = nxt
         else:
             raise TessellationError(f"section curves cannot meet the chord budget{worst}")

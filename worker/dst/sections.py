@@ -302,7 +302,11 @@ def snap_to_planes(
     if not planes.size:
         return z, [], none
     j = np.clip(np.searchsorted(planes, z), 1, planes.size) - 1
-    j = np.where(np.abs(z - planes[np.minimum(j + 1, planes.size - 1)]) < np.abs(z - planes[j]), np.minimum(j + 1, planes.size - 1), j)
+    j = np.where(
+        np.abs(z - planes[np.minimum(j + 1, planes.size - 1)]) < np.abs(z - planes[j]),
+        np.minimum(j + 1, planes.size - 1),
+        j,
+    )
     noise = np.abs(z - planes[j]) <= noise_tol[j]
     z[noise] = planes[j[noise]]
     near = np.abs(z - planes[j]) <= tol

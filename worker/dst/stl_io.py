@@ -13,7 +13,12 @@ _STL_DTYPE = np.dtype([("normal", "<f4", (3,)), ("v", "<f4", (3, 3)), ("attr", "
 
 
 def write_stl(
-    path: str | os.PathLike[str], vertices32: np.ndarray, triangles: np.ndarray, *, ascii: bool = False, name: str = "dst"
+    path: str | os.PathLike[str],
+    vertices32: np.ndarray,
+    triangles: np.ndarray,
+    *,
+    ascii: bool = False,
+    name: str = "dst",
 ) -> int:
     """Write ``vertices32`` (float32, mm) and ``triangles`` (int, outward CCW) to ``path``; return bytes.
 

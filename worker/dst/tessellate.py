@@ -162,9 +162,7 @@ def _piece_triangles(sampler: RingSampler, t: int, k: int) -> list[tuple[int, in
     if "in" in kinds:
         apex = kinds.index("in")
         m = len(ids)
-        return [
-            (ids[apex], ids[(apex + q) % m], ids[(apex + q + 1) % m]) for q in range(1, m - 1)
-        ]
+        return [(ids[apex], ids[(apex + q) % m], ids[(apex + q + 1) % m]) for q in range(1, m - 1)]
     if len(set(kinds)) == 1:
         return _centroid_fan(sampler.pool, ids, int(kinds[0][1:]))
     return _two_chain_zipper(ids, kinds)

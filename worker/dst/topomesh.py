@@ -22,11 +22,11 @@ from OCP.BRep import BRep_Tool
 from OCP.BRepAdaptor import BRepAdaptor_Curve, BRepAdaptor_Surface
 from OCP.BRepMesh import BRepMesh_IncrementalMesh
 from OCP.BRepTools import BRepTools
+from OCP.collections import IndexedMap_TopoDS_Shape_TopTools_ShapeMapHasher as ShapeIndexedMap
 from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE, TopAbs_REVERSED
 from OCP.TopExp import TopExp, TopExp_Explorer
 from OCP.TopLoc import TopLoc_Location
 from OCP.TopoDS import TopoDS, TopoDS_Shape
-from OCP.collections import IndexedMap_TopoDS_Shape_TopTools_ShapeMapHasher as ShapeIndexedMap
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
@@ -63,7 +63,9 @@ def build_topomesh(solid: TopoDS_Shape, *, deflection: float, angular: float, me
 
     edge_map = ShapeIndexedMap()
     TopExp.MapShapes_s(solid, TopAbs_EDGE, edge_map)
-    edges = [EdgeEval(BRepAdaptor_Curve(TopoDS.Edge(edge_map.FindKey(i)))) for i in range(1, edge_map.Extent() + 1)]
+    edges = [
+        EdgeEval(BRepAdaptor_Curve(TopoDS.Edge(edge_map.FindKey(i)))) for i in range(1, edge_map.Extent() + 1)
+    ]
 
     faces: list[FaceEval] = []
     xyz_parts, uv_parts, tri_parts, face_parts = [], [], [], []

@@ -16,7 +16,9 @@ def _faces(kind):
     from OCP.BRepBuilderAPI import BRepBuilderAPI_NurbsConvert
 
     if kind.startswith("nurbs-"):
-        base = {"nurbs-sphere": bd.Sphere(5), "nurbs-torus": bd.Torus(8, 2), "nurbs-box": bd.Box(3, 4, 5)}[kind]
+        base = {"nurbs-sphere": bd.Sphere(5), "nurbs-torus": bd.Torus(8, 2), "nurbs-box": bd.Box(3, 4, 5)}[
+            kind
+        ]
         base = base.rotate(bd.Axis((1, 2, 3), (0.3, -0.5, 0.8)), 37).translate((5, -7, 11))
         converted = BRepBuilderAPI_NurbsConvert(base.wrapped, True).Shape()
         exp = TopExp_Explorer(converted, TopAbs_FACE)
@@ -38,7 +40,9 @@ def _faces(kind):
         exp.Next()
 
 
-@pytest.mark.parametrize("kind", ["plane", "cylinder", "cone", "sphere", "torus", "nurbs-sphere", "nurbs-torus", "nurbs-box"])
+@pytest.mark.parametrize(
+    "kind", ["plane", "cylinder", "cone", "sphere", "torus", "nurbs-sphere", "nurbs-torus", "nurbs-box"]
+)
 def test_closed_form_matches_occt(kind):
     rng = np.random.default_rng(7)
     checked = 0

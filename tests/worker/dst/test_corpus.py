@@ -21,12 +21,25 @@ from worker.dst.pipeline import slice_step
 
 pytestmark = pytest.mark.corpus
 
-FILES = sorted(p for p in CORPUS.glob("*/*") if p.suffix.lower() in {".stp", ".step"}) if CORPUS.is_dir() else []
+FILES = (
+    sorted(p for p in CORPUS.glob("*/*") if p.suffix.lower() in {".stp", ".step"}) if CORPUS.is_dir() else []
+)
 MAY_FAIL_DIRS = {"surface", "malformed"}  # these may hold no closed solid: a clear error is right
 RING_TOL_MM = 1e-5
-SLOW = {"tr8_bv1_tc.stp", "bug29241.stp", "trj3_s1-ec-214.stp", "face_recognition_sample_part.stp",
-        "trj3_t2-db-214.stp", "eight_cyl.stp", "box_sides.STEP", "11752.stp", "bug27453_165-174_piattello.stp",
-        "bug32314_corrupted.stp", "bug28366_fuselage.stp", "as1_motor.step"}
+SLOW = {
+    "tr8_bv1_tc.stp",
+    "bug29241.stp",
+    "trj3_s1-ec-214.stp",
+    "face_recognition_sample_part.stp",
+    "trj3_t2-db-214.stp",
+    "eight_cyl.stp",
+    "box_sides.STEP",
+    "11752.stp",
+    "bug27453_165-174_piattello.stp",
+    "bug32314_corrupted.stp",
+    "bug28366_fuselage.stp",
+    "as1_motor.step",
+}
 
 # Files that hold closed solids but on which the core does not yet produce a mesh: kept visible as
 # strict xfails (a fix turns them into failures until this list is updated).
@@ -46,8 +59,8 @@ def _params(path: Path) -> SliceParams:
 def _exact_section_points(solid, z: float, step: float = 0.02) -> np.ndarray:
     from OCP.BRepAdaptor import BRepAdaptor_Curve
     from OCP.BRepAlgoAPI import BRepAlgoAPI_Section
-    from OCP.gp import gp_Dir, gp_Pln, gp_Pnt
     from OCP.GCPnts import GCPnts_UniformAbscissa
+    from OCP.gp import gp_Dir, gp_Pln, gp_Pnt
     from OCP.TopAbs import TopAbs_EDGE
     from OCP.TopExp import TopExp_Explorer
     from OCP.TopoDS import TopoDS
@@ -108,7 +121,9 @@ def _check_against_exact_sections(mesh) -> None:
         b = mesh.vertices[edges[sel, 1], :2]
         # exact -> rings: within the chord budget (plus the sampler's own resolution)
         d = _distance_to_segments(exact, a, b)
-        assert np.quantile(d, 0.999) <= mesh.params.chord_error + 1e-3, f"plane {j}: exact section far from rings"
+        assert np.quantile(d, 0.999) <= mesh.params.chord_error + 1e-3, (
+            f"plane {j}: exact section far from rings"
+        )
         # rings -> exact: each ring vertex is on the exact section
         ring_v = np.unique(edges[sel].ravel())
         from scipy.spatial import cKDTree
@@ -117,11 +132,15 @@ def _check_against_exact_sections(mesh) -> None:
         # OCCT's section can come back incomplete on B-spline files (DST.md section 7): a ring vertex
         # far from its samples is measured against the B-rep itself
         far = ring_v[dv > 0.02]
-        assert len(far) < 0.05 * len(ring_v), f"plane {j}: {len(far)} ring vertices far from the exact section"
+        assert len(far) < 0.05 * len(ring_v), (
+            f"plane {j}: {len(far)} ring vertices far from the exact section"
+        )
         for vid in far[:: max(1, len(far) // 40)]:
             p = mesh.vertices[vid].copy()
             p[2] = zw
-            assert _distance_to_brep(p, mesh.part.solids) < RING_TOL_MM, f"plane {j}: ring vertex off the B-rep"
+            assert _distance_to_brep(p, mesh.part.solids) < RING_TOL_MM, (
+                f"plane {j}: ring vertex off the B-rep"
+            )
 
 
 def _case(p: Path):
@@ -134,7 +153,9 @@ def _case(p: Path):
 
 
 _CASES = [_case(p) for p in FILES] or [
-    pytest.param(None, marks=pytest.mark.skip(reason=f"the shared STEP corpus is not beside this checkout ({CORPUS})"))
+    pytest.param(
+        None, marks=pytest.mark.skip(reason=f"the shared STEP corpus is not beside this checkout ({CORPUS})")
+    )
 ]
 
 

@@ -74,7 +74,9 @@ def test_cone_rings_follow_the_linear_radius(make_step):
 
 
 def test_torus_lying_flat_has_two_exact_circles_per_plane(make_step):
-    mesh = slice_step(make_step("torus", major=15.0, minor=5.0), SliceParams(layer_height=0.2, chord_error=0.01))
+    mesh = slice_step(
+        make_step("torus", major=15.0, minor=5.0), SliceParams(layer_height=0.2, chord_error=0.01)
+    )
     assert_watertight(mesh)
     assert_slab_property(mesh)
     v, zs = _ring_xyz(mesh)
@@ -134,7 +136,10 @@ def test_first_layer_height_and_boundary_modes(make_step):
 
 @pytest.mark.parametrize("slicer", ["cura", "prusa"])
 def test_target_slicer_heights_survive_the_slicers_own_arithmetic(make_step, slicer):
-    mesh = slice_step(make_step("cone", radius=5.0, height=3.0), SliceParams(layer_height=0.15, first_layer_height=0.25, target_slicer=slicer))
+    mesh = slice_step(
+        make_step("cone", radius=5.0, height=3.0),
+        SliceParams(layer_height=0.15, first_layer_height=0.25, target_slicer=slicer),
+    )
     z32 = mesh.vertices32[mesh.vertex_plane >= 0, 2]
     if slicer == "cura":
         um = np.round(z32.astype(np.float64) * 1000)

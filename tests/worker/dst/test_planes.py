@@ -23,7 +23,9 @@ def test_boundary_modes_slice_the_layer_boundaries(mode):
 
 
 def test_cura_planes_are_integer_micrometres_with_integer_division():
-    plan = plan_planes(height=2.0, params=SliceParams(layer_height=0.2, first_layer_height=0.125, target_slicer="cura"))
+    plan = plan_planes(
+        height=2.0, params=SliceParams(layer_height=0.2, first_layer_height=0.125, target_slicer="cura")
+    )
     um = plan.z * 1000
     np.testing.assert_array_equal(um, np.round(um))
     assert um[0] == 62  # 125 // 2

@@ -56,9 +56,15 @@ def _cura_spread(stl: Path, tmp: Path, *, radius: float, h: float) -> float:
     exe, defs = _cura()
     gcode = tmp / (stl.stem + ".gcode")
     settings = {
-        "layer_height": h, "layer_height_0": h, "machine_center_is_zero": "true",
-        "meshfix_maximum_resolution": 0.05, "meshfix_maximum_deviation": 0.002,
-        "wall_line_count": 1, "infill_sparse_density": 0, "top_layers": 0, "bottom_layers": 0,
+        "layer_height": h,
+        "layer_height_0": h,
+        "machine_center_is_zero": "true",
+        "meshfix_maximum_resolution": 0.05,
+        "meshfix_maximum_deviation": 0.002,
+        "wall_line_count": 1,
+        "infill_sparse_density": 0,
+        "top_layers": 0,
+        "bottom_layers": 0,
         "adhesion_type": "none",
     }
     cmd = [exe, "slice", "-j", str(defs / "fdmprinter.def.json")]
@@ -83,10 +89,32 @@ def _prusa_spread(stl: Path, tmp: Path, *, radius: float, h: float) -> float:
     if exe is None:
         pytest.skip("prusa-slicer is not installed (.ci/run installs it)")
     gcode = tmp / (stl.stem + "_prusa.gcode")
-    cmd = [exe, "--export-gcode", "--layer-height", str(h), "--first-layer-height", str(h), "--center", "0,0",
-           "--dont-arrange", "--perimeters", "1", "--fill-density", "0", "--top-solid-layers", "0",
-           "--bottom-solid-layers", "0", "--skirts", "0", "--gcode-resolution", "0.002",
-           "--output", str(gcode), str(stl)]
+    cmd = [
+        exe,
+        "--export-gcode",
+        "--layer-height",
+        str(h),
+        "--first-layer-height",
+        str(h),
+        "--center",
+        "0,0",
+        "--dont-arrange",
+        "--perimeters",
+        "1",
+        "--fill-density",
+        "0",
+        "--top-solid-layers",
+        "0",
+        "--bottom-solid-layers",
+        "0",
+        "--skirts",
+        "0",
+        "--gcode-resolution",
+        "0.002",
+        "--output",
+        str(gcode),
+        str(stl),
+    ]
     subprocess.run(cmd, check=True, capture_output=True, timeout=300, env={**os.environ, "HOME": str(tmp)})
     insets, print_z, kind = [], None, ""
     move = re.compile(r"^G1 X(-?[\d.]+) Y(-?[\d.]+) E")
@@ -96,7 +124,12 @@ def _prusa_spread(stl: Path, tmp: Path, *, radius: float, h: float) -> float:
         elif line.startswith(";TYPE:"):
             kind = line[6:]
         # the first layer is printed with a wider extrusion, hence another inset: it is left out
-        elif kind == "External perimeter" and print_z is not None and print_z > 1.5 * h and (m := move.match(line)):
+        elif (
+            kind == "External perimeter"
+            and print_z is not None
+            and print_z > 1.5 * h
+            and (m := move.match(line))
+        ):
             z = print_z - h / 2  # PrusaSlicer slices mid-layer
             exact = np.sqrt(radius**2 - z**2)
             if exact >= 3.0:
