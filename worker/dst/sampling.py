@@ -258,38 +258,48 @@ class RingSampler:
         return runs
 
     def pinned_loop(self, li: int) -> list[int]:
-        """Ring of a pinned loop: every topology crossing, plus points where a segment breaks the budget."""
+        """Ring of a pinned loop: every topology crossing, plus points where a segment breaks the budget.
+
+        A segment joining two nodes that lie in the plane runs along a topology edge lying in it; a
+        loop may pass such an edge twice (there and back along a line where the surface touches the
+        plane). Its points are sampled once and shared, in ``edge_subdiv``, with both passes and with
+        every kept triangle on that edge.
+        """
         topo = self.topo
         j, cross = topo.loops[li]
         zc = float(topo.planes[j])
         cl = cross.tolist()
-        todo = [c for c in cl if c not in self.subdiv]
-        runs = []
-        for c in todo:
+        es = self.edge_subdiv
+        runs, sampled, repeats = [], [], []
+        for c in cl:
+            if c in self.subdiv:
+                continue
             nxt = int(topo.succ[c])
+            na, nb = int(topo.cross_node[c]), int(topo.cross_node[nxt])
+            key = (min(na, nb), max(na, nb)) if na >= 0 and nb >= 0 and na != nb else None
+            if key is not None and key in es:
+                self.subdiv[c] = es[key] if na < nb else es[key][::-1]
+                continue
+            if key is not None and any(k == key for _, k in sampled):
+                repeats.append((c, key, na < nb))
+                continue
             start, end = self.crossing(c), self.crossing(nxt)
             d = float(np.linalg.norm(np.subtract(self.pool.xyz[end], self.pool.xyz[start])))
             uv = np.stack([topo.cross_uv_start[c], topo.cross_uv_end[c]])
             t = int(topo.seg_tri[c])
-            runs.append(
-                _Run(
-                    int(self.mesh.tri_face[t]),
-                    np.array([0.0, d]),
-                    uv,
-                    2.0 * float(self.tri_uv_scale[t]),
-                    start,
-                    end,
-                    1,
-                    zc,
-                    j,
-                )
-            )
-        for c, run_pts in zip(todo, self._sample_runs(runs), strict=True):
+            step = 2.0 * float(self.tri_uv_scale[t])
+            runs.append(_Run(int(self.mesh.tri_face[t]), np.array([0.0, d]), uv, step, start, end, 1, zc, j))
+            sampled.append((c, key))
+        here: dict[tuple[int, int], list[int]] = {}  # this loop's in-plane edges, low node to high
+        for (c, key), run_pts in zip(sampled, self._sample_runs(runs), strict=True):
             inner = run_pts[1:-1]
             self.subdiv[c] = inner
-            na, nb = int(topo.cross_node[c]), int(topo.cross_node[topo.succ[c]])
-            if inner and na >= 0 and nb >= 0 and na != nb:
-                self.edge_subdiv[(na, nb) if na < nb else (nb, na)] = inner if na < nb else inner[::-1]
+            if key is not None:
+                here[key] = inner if int(topo.cross_node[c]) == key[0] else inner[::-1]
+                if inner:  # kept triangles on this edge must use the same points
+                    es[key] = here[key]
+        for c, key, forward in repeats:
+            self.subdiv[c] = here[key] if forward else here[key][::-1]
         out: list[int] = []
         for c in cl:
             out.append(self.crossing(c))

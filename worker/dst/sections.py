@@ -124,12 +124,19 @@ def cut_topology(
     # A node on a plane counts as above it, except an isolated local maximum (a dome top or the top
     # line of a horizontal hole touching the plane): that counts as below, so the plane touching the
     # surface there does not invent a zero-width section.
+    # The decision is made per connected set of on-plane nodes (joined by edges lying in the plane),
+    # so a line of them is never split into above and below parts.
     on = node_plane >= 0
     has_above = np.zeros(n, dtype=bool)
     a_, b_ = edges[:, 0], edges[:, 1]
     np.logical_or.at(has_above, a_, z[b_] > z[a_])
     np.logical_or.at(has_above, b_, z[a_] > z[b_])
-    below = on & ~snapped & ~has_above
+    in_plane = on[a_] & on[b_] & (node_plane[a_] == node_plane[b_])
+    graph = coo_matrix((np.ones(int(in_plane.sum())), (a_[in_plane], b_[in_plane])), shape=(n, n))
+    _, group = connected_components(graph, directed=False)
+    keep_above = np.zeros(group.max() + 1, dtype=bool)
+    np.logical_or.at(keep_above, group[on], (snapped | has_above)[on])
+    below = on & ~keep_above[group]
     slab = (np.searchsorted(planes, z, side="right") - below).astype(np.int64)
 
     s_a, s_b = slab[edges[:, 0]], slab[edges[:, 1]]
@@ -214,7 +221,9 @@ def cut_topology(
     zc = planes[cross_plane] if n_cross else np.zeros(0)
     lower = lo_node
     upper_n = up_node
-    frac = (zc - z[lower]) / (z[upper_n] - z[lower]) if n_cross else np.zeros(0)
+    dz = z[upper_n] - z[lower] if n_cross else np.zeros(0)
+    # an edge joining two nodes of one plane (one counted below it, one above) crosses it at a node
+    frac = np.divide(zc - z[lower], dz, out=np.ones_like(dz), where=dz != 0) if n_cross else np.zeros(0)
     cross_xyz = mesh.xyz[lower] + frac[:, None] * (mesh.xyz[upper_n] - mesh.xyz[lower])
     cross_xyz[:, 2] = zc
     # the segment starting at crossing c lies in triangle seg_tri[c]; both of its ends are seeded there
