@@ -125,18 +125,34 @@ def cut_topology(
     # line of a horizontal hole touching the plane): that counts as below, so the plane touching the
     # surface there does not invent a zero-width section.
     # The decision is made per connected set of on-plane nodes (joined by edges lying in the plane),
-    # so a line of them is never split into above and below parts.
+    # so a line of them is never split into above and below parts. A set whose in-plane edges are all
+    # ridges (both neighbouring triangles below the plane: the surface touches it from below, like the
+    # top line of a horizontal hole) counts as below; any other edge (a valley, or a surface passing
+    # through the plane along it) or a flat face or horizontal edge makes it above. A lone node counts
+    # as below when it is a local maximum (a dome top).
     on = node_plane >= 0
-    has_above = np.zeros(n, dtype=bool)
     a_, b_ = edges[:, 0], edges[:, 1]
+    has_above = np.zeros(n, dtype=bool)
     np.logical_or.at(has_above, a_, z[b_] > z[a_])
     np.logical_or.at(has_above, b_, z[a_] > z[b_])
     in_plane = on[a_] & on[b_] & (node_plane[a_] == node_plane[b_])
     graph = coo_matrix((np.ones(int(in_plane.sum())), (a_[in_plane], b_[in_plane])), shape=(n, n))
     _, group = connected_components(graph, directed=False)
-    keep_above = np.zeros(group.max() + 1, dtype=bool)
-    np.logical_or.at(keep_above, group[on], (snapped | has_above)[on])
-    below = on & ~keep_above[group]
+    n_groups = group.max() + 1
+    ie = np.flatnonzero(in_plane)
+    third = mesh.tris[edge_tris[ie]].sum(axis=2) - (a_[ie] + b_[ie])[:, None]  # (k, 2) third vertices
+    side = np.sign(z[third] - z[a_[ie]][:, None])
+    ridge = (side < 0).all(axis=1)
+    g_edges = np.zeros(n_groups, dtype=bool)
+    g_other = np.zeros(n_groups, dtype=bool)
+    g_edges[group[a_[ie]]] = True
+    np.logical_or.at(g_other, group[a_[ie]], ~ridge)
+    g_above = np.zeros(n_groups, dtype=bool)
+    np.logical_or.at(g_above, group[on], (snapped | has_above)[on])
+    g_snapped = np.zeros(n_groups, dtype=bool)
+    np.logical_or.at(g_snapped, group[on], snapped[on])
+    g_below = ~g_snapped & np.where(g_edges, ~g_other, ~g_above)
+    below = on & g_below[group]
     slab = (np.searchsorted(planes, z, side="right") - below).astype(np.int64)
 
     s_a, s_b = slab[edges[:, 0]], slab[edges[:, 1]]
