@@ -1,10 +1,8 @@
 """Exact evaluation on the B-rep: points of a face or an edge at a given height.
 
-Every ring vertex of a DST mesh comes from here. Three primitives:
+Corner points and crossings of the topology mesh come from here (the batched Newton on level sets
+that places all other ring vertices lives in ``sampling``). Two primitives:
 
-- :func:`level_point`: Newton on ``z(u, v) = c`` in a face's parameter space from a seed, stepping
-  along the gradient of ``z`` in (u, v); converges quadratically to a point of the face's surface at
-  height ``c`` (|z - c| below ``LEVEL_TOL_MM``).
 - :func:`root_on_uv_segment`: the point at height ``c`` on the surface along a straight (u, v) segment
   whose ends bracket ``c`` (Brent): used for the crossings of topology-mesh edges inside a face.
 - :func:`root_on_curve`: the point at height ``c`` on an edge's 3D curve between two parameters that
@@ -15,8 +13,6 @@ All points are in millimetres in the part's placement (``BRepAdaptor_*`` apply f
 
 from __future__ import annotations
 
-import math
-
 from OCP.BRepAdaptor import BRepAdaptor_Curve, BRepAdaptor_Surface
 from OCP.BRepClass import BRepClass_FaceClassifier
 from OCP.Extrema import Extrema_ExtPC
@@ -24,7 +20,7 @@ from OCP.gp import gp_Pnt, gp_Pnt2d, gp_Vec
 from OCP.TopAbs import TopAbs_IN, TopAbs_ON
 from scipy.optimize import brentq
 
-from worker.dst.constants import LEVEL_TOL_MM, NEWTON_MAX_ITER, ROOT_XTOL
+from worker.dst.constants import ROOT_XTOL
 
 _RTOL = 4.5 * 2.220446049250313e-16  # brentq refuses anything below 4 * machine epsilon
 
@@ -54,9 +50,6 @@ class FaceEval:
         p = self.ad.Value(u, v)
         return p.X(), p.Y(), p.Z()
 
-    def z(self, u: float, v: float) -> float:
-        return self.ad.Value(u, v).Z()
-
     def z_and_grad(self, u: float, v: float) -> tuple[float, float, float]:
         """z(u, v) and its partial derivatives (for minimising the height over the face)."""
         self.ad.D1(u, v, self._p, self._du, self._dv)
@@ -66,34 +59,6 @@ class FaceEval:
         """True if (u, v) is inside the trimmed face or on its boundary."""
         state = BRepClass_FaceClassifier(self.face, gp_Pnt2d(u, v), tol).State()
         return state in (TopAbs_IN, TopAbs_ON)
-
-    def level_point(
-        self, u: float, v: float, c: float, max_step: float
-    ) -> tuple[float, float, float, float, float]:
-        """Newton from seed (u, v) to a point at height ``c`` on the surface.
-
-        ``max_step`` bounds each (u, v) step (a trust region of the order of the seed's distance to the
-        level set), so a nearly flat region cannot throw the iterate across the face.
-
-        Returns (x, y, z, u, v) with |z - c| < LEVEL_TOL_MM; raises ExactFailure otherwise.
-        """
-        p, du, dv = self._p, self._du, self._dv
-        ad = self.ad
-        for _ in range(NEWTON_MAX_ITER):
-            ad.D1(u, v, p, du, dv)
-            f = p.Z() - c
-            if abs(f) < LEVEL_TOL_MM:
-                return p.X(), p.Y(), p.Z(), u, v
-            gu, gv = du.Z(), dv.Z()
-            g2 = gu * gu + gv * gv
-            if g2 == 0.0:
-                break
-            su, sv = -f * gu / g2, -f * gv / g2
-            n = math.hypot(su, sv)
-            if n > max_step:
-                su, sv = su * max_step / n, sv * max_step / n
-            u, v = u + su, v + sv
-        raise ExactFailure(f"Newton did not reach z={c:.6f} from ({u:.6g}, {v:.6g})")
 
     def root_on_uv_segment(
         self, ua: float, va: float, ub: float, vb: float, c: float

@@ -164,6 +164,7 @@ def slice_part(
     # exactly the float32 height the section was computed at (and that the STL will hold)
     vertices[ring, 2] = planes.section_z[vertex_plane[ring]]
     check_mesh(vertices, triangles)
+    warnings.extend(simplification_warnings(params))
     if stats["tangent_segments"]:
         warnings.append(
             f"{stats['tangent_segments']} ring segment(s) are kept over budget where a plane is tangent to "
@@ -201,6 +202,23 @@ def slice_part(
         warnings=warnings,
         stats=stats,
     )
+
+
+def simplification_warnings(params: SliceParams) -> list[str]:
+    """Slicers simplify contours again after slicing: a finer chord target does not reach the G-code."""
+    out = []
+    if params.chord_error < C.CURA_MAX_DEVIATION_MM:
+        out.append(
+            f"chord_error {params.chord_error} mm is below Cura's own simplification "
+            f"(meshfix_maximum_deviation {C.CURA_MAX_DEVIATION_MM} mm, meshfix_maximum_resolution "
+            f"{C.CURA_MAX_RESOLUTION_MM} mm): lower those in Cura or the finer rings are simplified away"
+        )
+    if params.chord_error < C.PRUSA_GCODE_RESOLUTION_MM:
+        out.append(
+            f"chord_error {params.chord_error} mm is below PrusaSlicer's gcode_resolution "
+            f"({C.PRUSA_GCODE_RESOLUTION_MM} mm): lower it or the finer rings are simplified away"
+        )
+    return out
 
 
 def estimated_triangles(topo, params: SliceParams) -> float:

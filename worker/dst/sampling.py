@@ -57,12 +57,6 @@ class VertexPool:
         self.plane.append(plane)
         return len(self.xyz) - 1
 
-    def extend(self, pts: np.ndarray, plane: int) -> list[int]:
-        start = len(self.xyz)
-        self.xyz.extend(map(tuple, pts.tolist()))
-        self.plane.extend([plane] * len(pts))
-        return list(range(start, len(self.xyz)))
-
 
 @dataclass
 class SamplingStats:

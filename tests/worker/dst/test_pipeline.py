@@ -179,3 +179,14 @@ def test_planes_tangent_to_the_surface_give_a_closed_mesh(make_step, nurbs):
     assert_slab_property(mesh)
     exact = mesh.stats["exact_volume_mm3"]
     assert abs(mesh.stats["mesh_volume_mm3"] / exact - 1) < 0.01
+
+
+def test_a_chord_target_finer_than_the_slicers_keep_is_reported(make_step):
+    path = make_step("cone", radius=3.0, height=2.0)
+    mesh = slice_step(path, SliceParams(chord_error=0.015))
+    assert any("below Cura's own simplification" in w for w in mesh.warnings)
+    assert not any("PrusaSlicer's gcode_resolution" in w for w in mesh.warnings)
+    finer = slice_step(path, SliceParams(chord_error=0.01))
+    assert any("PrusaSlicer's gcode_resolution" in w for w in finer.warnings)
+    default = slice_step(make_step("cone", radius=3.0, height=2.0), SliceParams())
+    assert not any("simplification" in w or "gcode_resolution" in w for w in default.warnings)
