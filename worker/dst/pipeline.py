@@ -15,6 +15,7 @@ from OCP.BRepBndLib import BRepBndLib
 from worker.dst import constants as C
 from worker.dst.errors import ResourceLimitExceeded, TessellationError
 from worker.dst.lowest import snap_extremes
+from worker.dst.meshops import edge_defects, signed_volume
 from worker.dst.params import SliceParams
 from worker.dst.planes import PlanePlan, plan_planes
 from worker.dst.sampling import RingSampler, VertexPool
@@ -163,7 +164,7 @@ def slice_part(
     ring = vertex_plane >= 0
     # exactly the float32 height the section was computed at (and that the STL will hold)
     vertices[ring, 2] = planes.section_z[vertex_plane[ring]]
-    check_mesh(vertices, triangles)
+    volume = check_mesh(vertices, triangles)
     warnings.extend(simplification_warnings(params))
     if stats["tangent_segments"]:
         warnings.append(
@@ -187,7 +188,7 @@ def slice_part(
     stats["vertices"] = len(vertices)
     stats["ring_vertices"] = int(ring.sum())
     stats["exact_volume_mm3"] = float(sum(solid_volume(s) for s in part.solids))
-    stats["mesh_volume_mm3"] = mesh_volume(vertices, triangles)
+    stats["mesh_volume_mm3"] = volume
     timings["total"] = time.perf_counter() - t0
     stats["timings_s"] = {k: round(v, 4) for k, v in timings.items()}
     report("done", 1.0)
@@ -237,28 +238,19 @@ def bbox_diagonal(part: LoadedPart) -> tuple[float, float]:
     return float(np.linalg.norm(hi - lo)), float(hi[2] - lo[2])
 
 
-def mesh_volume(v: np.ndarray, t: np.ndarray) -> float:
-    """Signed volume (mm^3) enclosed by a closed triangle mesh (divergence theorem)."""
-    a, b, c = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
-    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
-
-
-def check_mesh(v: np.ndarray, t: np.ndarray) -> None:
-    """Raise TessellationError unless the mesh is a closed, oriented 2-manifold without zero-area faces."""
+def check_mesh(v: np.ndarray, t: np.ndarray) -> float:
+    """Raise TessellationError unless the mesh is a closed, outward-oriented 2-manifold without
+    zero-area faces; return its volume (mm^3)."""
     if len(t) == 0:
         raise TessellationError("the mesh is empty")
-    d = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
-    n = len(v)
-    key = d[:, 0] * n + d[:, 1]
-    uniq, counts = np.unique(key, return_counts=True)
-    rkey = d[:, 1] * n + d[:, 0]
-    open_edges = int((~np.isin(rkey, uniq)).sum())
-    dup = int((counts > 1).sum())
+    open_edges, dup = edge_defects(t, len(v))
     area2 = np.linalg.norm(np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]]), axis=1)
     zero = int((area2 <= 1e-18).sum())
     if open_edges or dup or zero:
         raise TessellationError(
             f"mesh check failed: {open_edges} open edges, {dup} non-manifold edges, {zero} zero-area triangles"
         )
-    if not math.isfinite(mesh_volume(v, t)) or mesh_volume(v, t) <= 0:
+    volume = signed_volume(v, t)
+    if not math.isfinite(volume) or volume <= 0:
         raise TessellationError("mesh check failed: the mesh is inside out")
+    return volume

@@ -235,16 +235,14 @@ def cut_topology(
 
     # --- seeds: linear interpolation along each crossing's edge, in the segment triangle's (u, v) ------
     zc = planes[cross_plane] if n_cross else np.zeros(0)
-    lower = lo_node
-    upper_n = up_node
-    dz = z[upper_n] - z[lower] if n_cross else np.zeros(0)
+    dz = z[up_node] - z[lo_node] if n_cross else np.zeros(0)
     # an edge joining two nodes of one plane (one counted below it, one above) crosses it at a node
-    frac = np.divide(zc - z[lower], dz, out=np.ones_like(dz), where=dz != 0) if n_cross else np.zeros(0)
-    cross_xyz = mesh.xyz[lower] + frac[:, None] * (mesh.xyz[upper_n] - mesh.xyz[lower])
+    frac = np.divide(zc - z[lo_node], dz, out=np.ones_like(dz), where=dz != 0) if n_cross else np.zeros(0)
+    cross_xyz = mesh.xyz[lo_node] + frac[:, None] * (mesh.xyz[up_node] - mesh.xyz[lo_node])
     cross_xyz[:, 2] = zc
     # the segment starting at crossing c lies in triangle seg_tri[c]; both of its ends are seeded there
-    cross_uv_start = _uv_in_tri(mesh, seg_tri, lower, upper_n, frac)
-    cross_uv_end = _uv_in_tri(mesh, seg_tri, lower[succ], upper_n[succ], frac[succ])
+    cross_uv_start = _uv_in_tri(mesh, seg_tri, lo_node, up_node, frac)
+    cross_uv_end = _uv_in_tri(mesh, seg_tri, lo_node[succ], up_node[succ], frac[succ])
     brep_keys = np.array([a * n + b for a, b in mesh.edge_of], dtype=np.int64)
     edge_is_brep = np.isin(keys, brep_keys)
     cross_is_corner = edge_is_brep[cross_edge] | (cross_node >= 0)

@@ -155,7 +155,7 @@ def _piece_triangles(sampler: RingSampler, t: int, k: int) -> list[tuple[int, in
         return []
     ids = [v for v, _ in ring]
     kinds = [kd for _, kd in ring]
-    if _vector_area(sampler.pool, ids) <= 1e-12 * _perimeter(sampler.pool, ids) ** 2:
+    if _collapsed(sampler.pool, ids):
         # The piece has collapsed onto a path walked there and back (a triangle touching a plane
         # along an edge): its boundary edges cancel, so it contributes nothing.
         return []
@@ -181,14 +181,12 @@ def _centroid_fan(pool: VertexPool, ids: list[int], plane: int) -> list[tuple[in
     return [(cv, ids[q], ids[(q + 1) % len(ids)]) for q in range(len(ids))]
 
 
-def _vector_area(pool: VertexPool, ids: list[int]) -> float:
+def _collapsed(pool: VertexPool, ids: list[int]) -> bool:
+    """True if the closed polygon has no area relative to its perimeter (a path walked there and back)."""
     p = np.array([pool.xyz[v] for v in ids])
-    return float(0.5 * np.linalg.norm(np.cross(p, np.roll(p, -1, axis=0)).sum(axis=0)))
-
-
-def _perimeter(pool: VertexPool, ids: list[int]) -> float:
-    p = np.array([pool.xyz[v] for v in ids])
-    return float(np.linalg.norm(p - np.roll(p, -1, axis=0), axis=1).sum())
+    area = 0.5 * np.linalg.norm(np.cross(p, np.roll(p, -1, axis=0)).sum(axis=0))
+    perimeter = np.linalg.norm(p - np.roll(p, -1, axis=0), axis=1).sum()
+    return bool(area <= 1e-12 * perimeter**2)
 
 
 def _two_chain_zipper(ids: list[int], kinds: list[str]) -> list[tuple[int, int, int]]:

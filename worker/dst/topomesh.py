@@ -33,6 +33,7 @@ from scipy.spatial import cKDTree
 
 from worker.dst.errors import TessellationError
 from worker.dst.exact import EdgeEval, FaceEval
+from worker.dst.meshops import edge_defects, signed_volume
 
 
 @dataclass
@@ -128,7 +129,7 @@ def build_topomesh(solid: TopoDS_Shape, *, deflection: float, angular: float, me
                 edge_of[(a, b) if a < b else (b, a)] = brep_edge
 
     _check_closed(tris)
-    if _signed_volume(xyz, tris) < 0:
+    if signed_volume(xyz, tris) < 0:
         tris = tris[:, ::-1].copy()
         tri_uv = tri_uv[:, ::-1].copy()
     return TopoMesh(
@@ -157,20 +158,9 @@ def _merge_nodes(xyz: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
 
 def _check_closed(tris: np.ndarray) -> None:
     """Every directed edge once, and its reverse once: a closed, consistently oriented 2-manifold."""
-    d = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
-    n = int(tris.max()) + 1
-    key = d[:, 0] * n + d[:, 1]
-    rkey = d[:, 1] * n + d[:, 0]
-    uniq, counts = np.unique(key, return_counts=True)
-    dup = int((counts > 1).sum())
-    missing = int((~np.isin(rkey, uniq)).sum())
+    missing, dup = edge_defects(tris, int(tris.max()) + 1)
     if dup or missing:
         raise TessellationError(
             f"the solid's surface mesh is not closed ({missing} open and {dup} non-manifold edges): "
             "the B-rep has gaps, overlaps or badly trimmed faces"
         )
-
-
-def _signed_volume(xyz: np.ndarray, tris: np.ndarray) -> float:
-    a, b, c = xyz[tris[:, 0]], xyz[tris[:, 1]], xyz[tris[:, 2]]
-    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
