@@ -1,4 +1,4 @@
-"""The ``dst`` command line: ``dst slice`` turns a STEP file into a DST mesh."""
+"""The ``dst`` command line: ``dst slice`` turns a STEP file into a DST mesh, ``dst report`` measures a mesh."""
 
 from __future__ import annotations
 
@@ -12,15 +12,7 @@ EXIT_USAGE = 2  # the command line is the problem (argparse uses 2 as well)
 EXIT_INTERNAL = 3  # a bug: please report it
 
 
-def _add_slice_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "slice",
-        help="build the DST mesh of a STEP file",
-        description="Intersect the exact B-rep with the slicer's planes and write a watertight STL whose "
-        "vertex rings lie exactly on those planes.",
-    )
-    p.add_argument("input", help="STEP file (AP203, AP214, AP242)")
-    p.add_argument("-o", "--output", required=True, help="STL file to write")
+def _add_slicing_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--layer-height", type=float, default=0.2, help="layer height h, mm (default 0.2)")
     p.add_argument(
         "--first-layer-height", type=float, default=None, help="first-layer height h0, mm (default h)"
@@ -39,15 +31,58 @@ def _add_slice_parser(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="write ring heights exactly as this slicer computes its planes",
     )
-    p.add_argument("--ascii", action="store_true", help="write ASCII STL instead of binary")
+
+
+def _add_report_options(p: argparse.ArgumentParser, *, json_flag: str) -> None:
+    p.add_argument(
+        "--baselines",
+        default=None,
+        help="comma-separated conventional meshes to compare with, or 'none' (default "
+        "occt_fast,occt_high_quality,prusaslicer; also occt_reference, bambu_orca, prusaslicer_high)",
+    )
+    p.add_argument("--html", default=None, help="also write a self-contained HTML page of the report")
+    p.add_argument("--plot", default=None, help="also write the per-layer plot (.svg or .png)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
+
+
+def _add_slice_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "slice",
+        help="build the DST mesh of a STEP file",
+        description="Intersect the exact B-rep with the slicer's planes and write a watertight STL whose "
+        "vertex rings lie exactly on those planes.",
+    )
+    p.add_argument("input", help="STEP file (AP203, AP214, AP242)")
+    p.add_argument("-o", "--output", required=True, help="STL file to write")
+    _add_slicing_options(p)
+    p.add_argument("--ascii", action="store_true", help="write ASCII STL instead of binary")
+    p.add_argument(
+        "--report", default=None, help="also write the deviation report (JSON) of the mesh and the baselines"
+    )
+    _add_report_options(p, json_flag="--report")
     p.set_defaults(func=_cmd_slice)
 
 
-def _cmd_slice(args: argparse.Namespace) -> int:
+def _add_report_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "report",
+        help="measure any mesh against the exact STEP geometry",
+        description="Cut MESH (an STL, e.g. your CAD system's export) and the conventional baselines at the "
+        "slicer's planes and compare every layer with the exact section of the STEP part. The mesh must "
+        "be in the STEP file's coordinates (x, y as exported; it is dropped to z = 0 like a slicer does).",
+    )
+    p.add_argument("input", help="STEP file (AP203, AP214, AP242)")
+    p.add_argument("mesh", help="STL file to measure (binary or ASCII)")
+    p.add_argument("-o", "--output", required=True, help="report JSON to write")
+    _add_slicing_options(p)
+    _add_report_options(p, json_flag="-o")
+    p.set_defaults(func=_cmd_report)
+
+
+def _params(args: argparse.Namespace):
     from worker.dst.params import SliceParams  # noqa: PLC0415 - keep `dst --help` fast
 
-    params = SliceParams.parse(
+    return SliceParams.parse(
         layer_height=args.layer_height,
         first_layer_height=args.first_layer_height,
         mode=args.mode,
@@ -55,15 +90,26 @@ def _cmd_slice(args: argparse.Namespace) -> int:
         chord_error=args.chord_error,
         target_slicer=args.target_slicer,
     )
-    if not os.path.isfile(args.input):
-        raise _UserError(f"input file not found: {args.input}")
-    out_dir = os.path.dirname(os.path.abspath(args.output))
+
+
+def _check_output(path: str | None) -> None:
+    if path is None:
+        return
+    out_dir = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(out_dir):
         raise _UserError(f"output directory does not exist: {out_dir}")
 
-    from worker.dst.pipeline import slice_step  # noqa: PLC0415 - OCP takes a second to import
 
-    start = time.perf_counter()
+def _check_report_outputs(args: argparse.Namespace, json_path: str | None) -> None:
+    for path in (json_path, args.html, args.plot):
+        _check_output(path)
+    if args.plot and os.path.splitext(args.plot)[1].lower() not in {".svg", ".png"}:
+        raise _UserError(f"--plot must end in .svg or .png: {args.plot}")
+    if (args.html or args.plot) and not json_path:
+        raise _UserError("--html and --plot need --report (the report they draw)")
+
+
+def _progress(args: argparse.Namespace, start: float):
     last = [""]
 
     def progress(stage: str, frac: float) -> None:
@@ -71,6 +117,24 @@ def _cmd_slice(args: argparse.Namespace) -> int:
             last[0] = stage
             print(f"[{time.perf_counter() - start:6.1f}s] {stage}", file=sys.stderr, flush=True)
 
+    return progress
+
+
+def _cmd_slice(args: argparse.Namespace) -> int:
+    params = _params(args)
+    if not os.path.isfile(args.input):
+        raise _UserError(f"input file not found: {args.input}")
+    _check_output(args.output)
+    _check_report_outputs(args, args.report)
+    if args.report:
+        from worker.dst.report import parse_baselines  # noqa: PLC0415
+
+        baselines = parse_baselines(args.baselines)
+
+    from worker.dst.pipeline import slice_step  # noqa: PLC0415 - OCP takes a second to import
+
+    start = time.perf_counter()
+    progress = _progress(args, start)
     mesh = slice_step(args.input, params, progress=progress)
     size = mesh.write_stl(args.output, ascii=args.ascii)
     if not args.quiet:
@@ -80,9 +144,74 @@ def _cmd_slice(args: argparse.Namespace) -> int:
             f"in {time.perf_counter() - start:.1f}s",
             file=sys.stderr,
         )
-    for w in mesh.warnings:
-        print(f"warning: {w}", file=sys.stderr)
+    if args.report:
+        from worker.dst.report import build_report  # noqa: PLC0415
+
+        report = build_report(
+            mesh.part, params, file_name=args.input, dst=mesh, baselines=baselines, progress=progress
+        )
+        _write_report(args, report, args.report)
+    else:
+        for w in mesh.warnings:
+            print(f"warning: {w}", file=sys.stderr)
     return 0
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    params = _params(args)
+    for path in (args.input, args.mesh):
+        if not os.path.isfile(path):
+            raise _UserError(f"input file not found: {path}")
+    _check_report_outputs(args, args.output)
+    from worker.dst.report import MeshInput, build_report, parse_baselines  # noqa: PLC0415
+    from worker.dst.step_io import read_step  # noqa: PLC0415
+    from worker.dst.stl_io import read_stl  # noqa: PLC0415
+
+    baselines = parse_baselines(args.baselines)
+    start = time.perf_counter()
+    progress = _progress(args, start)
+    progress("reading STEP and mesh", 0.0)
+    vertices, triangles = read_stl(args.mesh)
+    part = read_step(args.input)
+    mesh = MeshInput(
+        os.path.basename(args.mesh), "input", vertices, triangles, None, f"read from {args.mesh}"
+    )
+    report = build_report(
+        part, params, file_name=args.input, meshes=[mesh], baselines=baselines, progress=progress
+    )
+    _write_report(args, report, args.output)
+    return 0
+
+
+def _write_report(args: argparse.Namespace, report, json_path: str) -> None:
+    from worker.dst.render import write_html, write_json, write_plot  # noqa: PLC0415
+
+    write_json(report, json_path)
+    if args.html:
+        write_html(report, args.html)
+    if args.plot:
+        write_plot(report, args.plot)
+    if not args.quiet:
+        print(_summary_table(report), file=sys.stderr)
+        print(f"wrote {', '.join(p for p in (json_path, args.html, args.plot) if p)}", file=sys.stderr)
+    for w in report.warnings:
+        print(f"warning: {w}", file=sys.stderr)
+
+
+def _summary_table(report) -> str:
+    def f(x):
+        return "-" if x is None else f"{x:.3g}"
+
+    lines = [
+        f"{'mesh':22s} {'triangles':>10s} {'max vertex_dev':>15s} {'max chord_dev':>14s} {'p95 chord_dev':>14s}"
+    ]
+    for m in report.meshes:
+        s = m.summary
+        lines.append(
+            f"{m.name[:22]:22s} {m.triangles:10d} {f(s.max_vertex_dev):>15s} {f(s.max_chord_dev):>14s} "
+            f"{f(s.p95_chord_dev):>14s}"
+        )
+    return "\n".join(lines)
 
 
 class _UserError(Exception):
@@ -94,6 +223,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--debug", action="store_true", help="show tracebacks")
     sub = parser.add_subparsers(dest="command", required=True)
     _add_slice_parser(sub)
+    _add_report_parser(sub)
     return parser
 
 

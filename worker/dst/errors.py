@@ -41,3 +41,9 @@ class ResourceLimitExceeded(DstError):
     """The job would exceed a configured limit (planes, triangles, memory)."""
 
     code = "resource_limit"
+
+
+class MeshReadError(DstError):
+    """A mesh file to be measured is not a readable STL or holds no triangles."""
+
+    code = "mesh_read_error"

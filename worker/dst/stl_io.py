@@ -85,3 +85,25 @@ def _write_ascii(fh: BinaryIO, v: np.ndarray, t: np.ndarray, name: str) -> None:
 
 def _f(x: np.float32) -> str:
     return np.format_float_positional(x, unique=True, trim="-") if x == x else "nan"
+
+
+def read_stl(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (float64, as stored: float32 values) and triangles of an STL file (binary or ASCII),
+    read with trimesh; vertices with equal coordinates are merged, as slicers merge them."""
+    import trimesh  # noqa: PLC0415 - only the report reads meshes
+
+    from worker.dst.errors import MeshReadError  # noqa: PLC0415
+
+    path = os.fspath(path)
+    try:
+        mesh = trimesh.load_mesh(path, file_type="stl", process=False)
+    except (ValueError, OSError, struct.error, IndexError, KeyError) as exc:
+        raise MeshReadError(f"cannot read {os.path.basename(path)} as STL: {exc}") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise MeshReadError(f"{os.path.basename(path)} holds no triangles (not an STL file?)")
+    v32 = np.asarray(mesh.vertices, dtype=np.float32)
+    if not np.isfinite(v32).all():
+        raise MeshReadError(f"{os.path.basename(path)} has non-finite coordinates")
+    uniq, inv = np.unique(v32, axis=0, return_inverse=True)
+    tris = inv.reshape(-1)[np.asarray(mesh.faces, dtype=np.int64)]
+    return uniq.astype(np.float64), tris

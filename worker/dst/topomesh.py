@@ -58,7 +58,7 @@ def build_topomesh(solid: TopoDS_Shape, *, deflection: float, angular: float, me
     Raises TessellationError if a face cannot be meshed or the merged mesh is not closed.
     """
     BRepTools.Clean_s(solid)
-    mesher = BRepMesh_IncrementalMesh(solid, deflection, False, angular, False)
+    mesher = BRepMesh_IncrementalMesh(solid, deflection, False, angular, True)  # faces in parallel
     if not mesher.IsDone():
         raise TessellationError("OCCT's mesher failed on this solid")
 

@@ -1,0 +1,331 @@
+"""Cut triangle meshes with the slicing planes and measure each cut against the exact sections.
+
+Pure numpy / scipy: no OCCT here, so the metrics can be pinned with hand-built meshes and polylines.
+
+The cut is the slicer's: a vertex exactly on a plane counts as below it (the cut is the limit from
+just above the plane), so a DST mesh, whose ring vertices lie exactly on the planes, is cut exactly
+along its rings, and a flat face lying on a plane gives the outline above it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+# Points along every target segment at most this far apart (mm) index the nearest-segment search.
+# Any spacing gives exact distances (the search widens until it is sure); this one keeps it fast.
+DENSE_SPACING_MM = 0.2
+_K_NEIGHBOURS = 4
+CORNER_RAD = 0.3  # a reference polyline turning more than this at a vertex has a corner there
+_PLANE_SEPARATION_MM = 1e7  # farther than any two points of a part in one plane
+
+
+@dataclass
+class MeshCut:
+    """The sections of one mesh at every plane.
+
+    seg : (n, 2, 2) float64   segments (x, y), mm
+    seg_plane : (n,) int64    plane index of each segment
+    loops : (P,) int64        closed loops per plane
+    open_chains : (P,) int64  chains that do not close (a mesh with holes or non-manifold edges)
+    """
+
+    seg: np.ndarray
+    seg_plane: np.ndarray
+    loops: np.ndarray
+    open_chains: np.ndarray
+    vertices: np.ndarray  # (m, 2) distinct cut vertices
+    vertex_plane: np.ndarray  # (m,)
+
+
+def cut_mesh(vertices: np.ndarray, triangles: np.ndarray, heights: np.ndarray) -> MeshCut:
+    """Sections of a triangle mesh at ``heights`` (ascending), vertices on a plane counting as below."""
+    v = np.asarray(vertices, dtype=np.float64)
+    t = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    h = np.asarray(heights, dtype=np.float64)
+    n_planes = len(h)
+    nv = len(v)
+    if len(t) == 0 or n_planes == 0:
+        return _empty_cut(n_planes)
+    tz = v[:, 2][t]
+    first = np.searchsorted(h, tz.min(axis=1), side="left")  # first plane >= lowest corner
+    stop = np.searchsorted(h, tz.max(axis=1), side="left")  # first plane >= highest corner
+    count = np.maximum(stop - first, 0)
+    tri = np.repeat(np.arange(len(t)), count)
+    if len(tri) == 0:
+        return _empty_cut(n_planes)
+    start = np.repeat(np.cumsum(count) - count, count)
+    plane = np.repeat(first, count) + (np.arange(len(tri)) - start)
+    hz = h[plane]
+    corners = t[tri]  # (k, 3)
+    above = tz[tri] > hz[:, None]
+    # the two corner edges k -> k+1 whose ends lie on different sides
+    nxt = np.roll(np.arange(3), -1)
+    crossing = above != above[:, nxt]
+    edge_k = np.argsort(~crossing, axis=1, kind="stable")[:, :2]  # the two crossing edges, in order
+    rows = np.arange(len(tri))[:, None]
+    a = corners[rows, edge_k]
+    b = corners[rows, nxt[edge_k]]
+    a_above = above[rows, edge_k]
+    lo = np.where(a_above, b, a)  # the end below or on the plane
+    hi = np.where(a_above, a, b)
+    z_lo, z_hi = v[lo, 2], v[hi, 2]
+    frac = (hz[:, None] - z_lo) / (z_hi - z_lo)
+    on = z_lo == hz[:, None]
+    frac[on] = 0.0
+    pts = v[lo, :2] + frac[..., None] * (v[hi, :2] - v[lo, :2])
+    key = np.where(on, lo, nv + np.minimum(lo, hi) * nv + np.maximum(lo, hi))
+    key = key * n_planes + plane[:, None]
+    keep = key[:, 0] != key[:, 1]
+    pts, key, plane = pts[keep], key[keep], plane[keep]
+    # loops: connected components of the segment graph, per plane (keys include the plane)
+    uniq, inv = np.unique(key.ravel(), return_inverse=True)
+    inv = inv.reshape(-1, 2)
+    n_nodes = len(uniq)
+    graph = coo_matrix((np.ones(len(inv)), (inv[:, 0], inv[:, 1])), shape=(n_nodes, n_nodes))
+    n_comp, label = connected_components(graph, directed=False)
+    label = label.astype(np.int64)
+    node_plane = (uniq % n_planes).astype(np.int64)
+    degree = np.bincount(inv.ravel(), minlength=n_nodes)
+    comp_open = np.zeros(n_comp, dtype=bool)
+    comp_open[label[degree != 2]] = True
+    comp_plane = np.zeros(n_comp, dtype=np.int64)
+    comp_plane[label] = node_plane
+    loops = np.bincount(comp_plane[~comp_open], minlength=n_planes)
+    open_chains = np.bincount(comp_plane[comp_open], minlength=n_planes)
+    node_xy = np.empty((n_nodes, 2))
+    node_xy[inv.ravel()] = pts.reshape(-1, 2)
+    return MeshCut(
+        seg=pts,
+        seg_plane=plane,
+        loops=loops.astype(np.int64),
+        open_chains=open_chains.astype(np.int64),
+        vertices=node_xy,
+        vertex_plane=node_plane,
+    )
+
+
+def _empty_cut(n_planes: int) -> MeshCut:
+    z = np.zeros(n_planes, dtype=np.int64)
+    return MeshCut(
+        np.zeros((0, 2, 2)), np.zeros(0, dtype=np.int64), z, z.copy(), np.zeros((0, 2)), np.zeros(0, np.int64)
+    )
+
+
+def loops_to_segments(loops: list[list[np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """Closed polylines per plane -> (segments (n, 2, 2), plane of each segment)."""
+    segs, planes = [], []
+    for j, ls in enumerate(loops):
+        for p in ls:
+            segs.append(np.stack([p, np.roll(p, -1, axis=0)], axis=1))
+            planes.append(np.full(len(p), j, dtype=np.int64))
+    if not segs:
+        return np.zeros((0, 2, 2)), np.zeros(0, dtype=np.int64)
+    return np.concatenate(segs), np.concatenate(planes)
+
+
+def arc_bulge(loops: list[list[np.ndarray]], *, corner_rad: float = CORNER_RAD) -> np.ndarray:
+    """Signed offset (along each span's left normal) of the curve's midpoint from the span's midpoint,
+    for closed polylines sampled densely on a smooth curve, in ``loops_to_segments`` order.
+
+    The curvature at each vertex is that of the circle through it and its two neighbours; a span takes
+    the mean of its two ends', leaving out an end where the polyline turns by more than ``corner_rad``
+    (a corner of the section, where the curve is not smooth). A span between two corners is straight.
+    """
+    out = []
+    for ls in loops:
+        for p in ls:
+            a = p - np.roll(p, 1, axis=0)  # into each vertex
+            b = np.roll(p, -1, axis=0) - p  # out of each vertex
+            cross = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+            dot = np.einsum("ij,ij->i", a, b)
+            la, lb = np.linalg.norm(a, axis=1), np.linalg.norm(b, axis=1)
+            lc = np.linalg.norm(a + b, axis=1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                kappa = np.where(la * lb * lc > 0, 2.0 * cross / (la * lb * lc), 0.0)
+            smooth = np.abs(np.arctan2(cross, dot)) < corner_rad
+            k0, k1 = kappa, np.roll(kappa, -1)
+            s0, s1 = smooth, np.roll(smooth, -1)
+            n = s0.astype(float) + s1
+            span_k = np.where(n > 0, (np.where(s0, k0, 0.0) + np.where(s1, k1, 0.0)) / np.maximum(n, 1), 0.0)
+            out.append(-span_k * lb**2 / 8.0)
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+def segment_lengths_per_plane(seg: np.ndarray, seg_plane: np.ndarray, n_planes: int) -> np.ndarray:
+    lengths = np.linalg.norm(seg[:, 1] - seg[:, 0], axis=1)
+    return np.bincount(seg_plane, weights=lengths, minlength=n_planes)
+
+
+def densify(
+    seg: np.ndarray, seg_plane: np.ndarray, spacing: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points along every segment at most ``spacing`` apart (ends included).
+
+    Returns (points (k, 2), plane of each point, segment of each point).
+    """
+    if len(seg) == 0:
+        return np.zeros((0, 2)), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    length = np.linalg.norm(seg[:, 1] - seg[:, 0], axis=1)
+    n = np.maximum(1, np.ceil(length / spacing).astype(np.int64))  # sub-spans per segment
+    owner = np.repeat(np.arange(len(seg)), n + 1)
+    start = np.repeat(np.cumsum(n + 1) - (n + 1), n + 1)
+    frac = (np.arange(len(owner)) - start) / n[owner]
+    pts = seg[owner, 0] + frac[:, None] * (seg[owner, 1] - seg[owner, 0])
+    return pts, seg_plane[owner], owner
+
+
+def midpoints(seg: np.ndarray) -> np.ndarray:
+    return 0.5 * (seg[:, 0] + seg[:, 1])
+
+
+def arc_midpoints(seg: np.ndarray, bulge: np.ndarray) -> np.ndarray:
+    ab = seg[:, 1] - seg[:, 0]
+    length = np.linalg.norm(ab, axis=1)
+    normal = np.column_stack([-ab[:, 1], ab[:, 0]]) / np.where(length > 0, length, 1.0)[:, None]
+    return midpoints(seg) + bulge[:, None] * normal
+
+
+class SegmentSet:
+    """Distance from points to the nearest of a set of segments (or shallow arcs) in the same plane.
+
+    With ``bulge`` (see :func:`arc_bulge`) each segment stands for the parabolic arc through its ends
+    whose midpoint is offset by ``bulge`` along the segment's left normal: the dense exact points of a
+    smooth curve then give distances to the curve itself, not to its polyline.
+    """
+
+    def __init__(
+        self,
+        seg: np.ndarray,
+        seg_plane: np.ndarray,
+        *,
+        spacing: float = DENSE_SPACING_MM,
+        bulge: np.ndarray | None = None,
+    ):
+        self.seg, self.seg_plane, self.spacing = seg, seg_plane, spacing
+        self.bulge = np.zeros(len(seg)) if bulge is None else np.asarray(bulge, dtype=np.float64)
+        self.max_bulge = float(np.abs(self.bulge).max()) if len(self.bulge) else 0.0
+        pts, plane, self.owner = densify(seg, seg_plane, spacing)
+        self.tree = cKDTree(self._lift(pts, plane)) if len(pts) else None
+
+    def _lift(self, pts: np.ndarray, plane: np.ndarray) -> np.ndarray:
+        # each plane's points lifted far from every other plane's: one tree serves all planes
+        return np.column_stack([pts, plane * _PLANE_SEPARATION_MM])
+
+    def distance(self, pts: np.ndarray, plane: np.ndarray) -> np.ndarray:
+        """Distance of each point to the nearest segment of its own plane (inf if the plane has none)."""
+        out = np.full(len(pts), np.inf)
+        if self.tree is None or not len(pts):
+            return out
+        has = np.isin(plane, np.unique(self.seg_plane))
+        if not has.any():
+            return out
+        p2, q = pts[has], self._lift(pts[has], plane[has])
+        d = np.full(len(q), np.inf)
+        todo = np.arange(len(q))
+        k = _K_NEIGHBOURS
+        while len(todo):
+            k = min(k, self.tree.n)
+            dk, ik = self.tree.query(q[todo], k=k, workers=-1)
+            dk, ik = dk.reshape(len(todo), k), ik.reshape(len(todo), k)
+            cand = self.owner[ik]  # (n, k) segment ids
+            d[todo] = _point_arc(
+                p2[todo][:, None, :], self.seg[cand, 0], self.seg[cand, 1], self.bulge[cand]
+            ).min(axis=1)
+            if k == self.tree.n:
+                break
+            # The nearest segment has a dense point within d + spacing/2 of the query: when the k
+            # points found do not cover that ball, look again with more.
+            todo = todo[dk[:, -1] <= d[todo] + 0.5 * self.spacing + self.max_bulge]
+            k *= 4
+        out[has] = d
+        return out
+
+
+def _point_arc(p: np.ndarray, a: np.ndarray, b: np.ndarray, bulge: np.ndarray) -> np.ndarray:
+    """Distance from points ``p`` (..., 2) to the arcs over segments ``a``-``b`` (..., 2), broadcast.
+
+    The arc point used is the one over the projection of ``p`` on the chord (the parabola's offset there
+    is 4 bulge t (1 - t)); for a shallow arc this is the nearest point to second order in its slope.
+    """
+    abx, aby = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
+    apx, apy = p[..., 0] - a[..., 0], p[..., 1] - a[..., 1]
+    denom = abx * abx + aby * aby
+    t = np.clip((apx * abx + apy * aby) / np.where(denom > 0, denom, 1.0), 0.0, 1.0)
+    off = 4.0 * bulge * t * (1.0 - t) / np.sqrt(np.where(denom > 0, denom, 1.0))  # per unit of |ab|
+    dx, dy = apx - t * abx + off * aby, apy - t * aby - off * abx
+    return np.sqrt(dx * dx + dy * dy)
+
+
+@dataclass
+class LayerMetrics:
+    """Per-plane metrics of one mesh (NaN where undefined: see ``compare``)."""
+
+    vertex_dev: np.ndarray
+    chord_dev: np.ndarray
+    perimeter_err: np.ndarray
+    loops: np.ndarray
+    open_chains: np.ndarray
+    vertices: np.ndarray
+    perimeter: np.ndarray
+
+
+def max_per_plane(values: np.ndarray, plane: np.ndarray, n_planes: int) -> np.ndarray:
+    out = np.full(n_planes, -np.inf)
+    np.maximum.at(out, plane, values)
+    return out
+
+
+def compare(cut: MeshCut, ref: SegmentSet, ref_perimeter: np.ndarray, n_planes: int) -> LayerMetrics:
+    """Metrics of ``cut`` against the reference segments, per plane.
+
+    vertex_dev : max distance of the cut's vertices from the reference
+    chord_dev : two-sided distance between the cut polyline and the reference: the larger of the
+                max distance of the reference's vertices and arc midpoints from the cut and the max
+                distance of the cut's vertices and segment midpoints from the reference. The
+                reference's vertices are as dense as its chord tolerance needs (spacing ~ sqrt(8 R c)),
+                so a maximum between two of them is missed by at most about that tolerance.
+    perimeter_err : |L_ref - L_cut| / L_ref
+    A plane where one side is empty and the other is not has NaN distances (and perimeter_err 1 when
+    the cut is empty, NaN when the reference is); a plane where both are empty has zeros.
+    """
+    cut_has = np.bincount(cut.seg_plane, minlength=n_planes) > 0
+    ref_has = np.bincount(ref.seg_plane, minlength=n_planes) > 0
+    vdist = ref.distance(cut.vertices, cut.vertex_plane)
+    vertex_dev = max_per_plane(vdist, cut.vertex_plane, n_planes)
+
+    cut_set = SegmentSet(cut.seg, cut.seg_plane, spacing=ref.spacing)
+    # every vertex of the closed reference loops and the curve's point over every span's midpoint
+    ref_pts = np.concatenate([ref.seg[:, 0], arc_midpoints(ref.seg, ref.bulge)])
+    ref_pl = np.concatenate([ref.seg_plane, ref.seg_plane])
+    cut_mid, cut_mid_pl = midpoints(cut.seg), cut.seg_plane
+    d_ref_to_cut = max_per_plane(cut_set.distance(ref_pts, ref_pl), ref_pl, n_planes)
+    d_cut_to_ref = np.maximum(
+        vertex_dev, max_per_plane(ref.distance(cut_mid, cut_mid_pl), cut_mid_pl, n_planes)
+    )
+    chord_dev = np.maximum(d_ref_to_cut, d_cut_to_ref)
+
+    cut_perimeter = segment_lengths_per_plane(cut.seg, cut.seg_plane, n_planes)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        perimeter_err = np.abs(ref_perimeter - cut_perimeter) / ref_perimeter
+    both_empty = ~cut_has & ~ref_has
+    one_empty = cut_has ^ ref_has
+    for arr in (vertex_dev, chord_dev):
+        arr[both_empty] = 0.0
+        arr[one_empty] = np.nan
+    perimeter_err[both_empty] = 0.0
+    perimeter_err[cut_has & ~ref_has] = np.nan
+    perimeter_err[~cut_has & ref_has] = 1.0
+    return LayerMetrics(
+        vertex_dev=vertex_dev,
+        chord_dev=chord_dev,
+        perimeter_err=perimeter_err,
+        loops=cut.loops,
+        open_chains=cut.open_chains,
+        vertices=np.bincount(cut.vertex_plane, minlength=n_planes),
+        perimeter=cut_perimeter,
+    )

@@ -1,0 +1,527 @@
+"""The deviation report: DST and conventional meshes cut at the slicer's planes, against the exact B-rep.
+
+``build_report`` is the whole computation; the JSON contract is the pydantic model ``Report``
+(``Report.model_json_schema()`` documents it). Every mesh is measured as its STL holds it (float32
+coordinates) and as a slicer places it (lowest vertex dropped to z = 0, x and y unchanged).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from OCP.Bnd import Bnd_Box
+from OCP.BRep import BRep_Tool
+from OCP.BRepBndLib import BRepBndLib
+from OCP.BRepMesh import BRepMesh_IncrementalMesh
+from OCP.BRepTools import BRepTools
+from OCP.TopAbs import TopAbs_FACE, TopAbs_REVERSED
+from OCP.TopExp import TopExp_Explorer
+from OCP.TopLoc import TopLoc_Location
+from OCP.TopoDS import TopoDS
+from pydantic import BaseModel, ConfigDict, Field
+
+from worker.dst import constants as C
+from worker.dst.deviation import (
+    DENSE_SPACING_MM,
+    SegmentSet,
+    arc_bulge,
+    compare,
+    cut_mesh,
+    loops_to_segments,
+)
+from worker.dst.errors import InvalidParameters, TessellationError
+from worker.dst.meshops import edge_defects, signed_volume
+from worker.dst.params import SliceParams
+from worker.dst.pipeline import DstMesh, bbox_diagonal, simplification_warnings
+from worker.dst.planes import plan_planes
+from worker.dst.reference import exact_sections
+from worker.dst.step_io import LoadedPart, solid_volume
+
+REPORT_VERSION = "1.0"
+Progress = Callable[[str, float], None]
+
+
+# --- conventional baselines ------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Preset:
+    linear: float  # BRepMesh linear deflection, mm
+    angular: float  # BRepMesh angular deflection, rad
+    source: str
+
+
+BASELINE_PRESETS: dict[str, Preset] = {
+    "occt_fast": Preset(0.085, 0.5, "paper Table 1 'fast' (angular: OCCT's default 0.5 rad)"),
+    "occt_high_quality": Preset(0.037, 0.5, "paper Table 1 'high quality' (angular: OCCT's default 0.5 rad)"),
+    "occt_reference": Preset(0.00576, 0.5, "paper Table 1 'reference' (angular: OCCT's default 0.5 rad)"),
+    "prusaslicer": Preset(0.005, 1.0, "PrusaSlicer 2.5 STEP import (OCCTWrapper.cpp)"),
+    "bambu_orca": Preset(0.003, 0.5, "Bambu Studio / OrcaSlicer STEP import (Format/STEP.cpp)"),
+    "prusaslicer_high": Preset(0.001, 0.25, "PrusaSlicer 'High' STEP import (LoadStepDialog.cpp)"),
+}
+DEFAULT_BASELINES = ("occt_fast", "occt_high_quality", "prusaslicer")
+BaselineName = Literal[
+    "occt_fast", "occt_high_quality", "occt_reference", "prusaslicer", "bambu_orca", "prusaslicer_high"
+]
+
+# the exact reference: much finer than any mesh it judges
+REFERENCE_CHORD_MM = 1e-3
+REFERENCE_SEGMENT_MM = 1.0
+# Cura drops section loops shorter than this (minimum_polygon_circumference default)
+CURA_MIN_CIRCUMFERENCE_MM = 1.0
+VOLUME_WARN_REL = 0.01  # a mesh enclosing 1% more or less than the solid is worth a warning
+
+
+def parse_baselines(names: Sequence[str] | str | None) -> tuple[str, ...]:
+    """Baseline preset names from a list or a comma-separated string ('none' or '' for none)."""
+    if names is None:
+        return DEFAULT_BASELINES
+    if isinstance(names, str):
+        names = [n.strip() for n in names.split(",")]
+    names = [n for n in names if n and n != "none"]
+    unknown = [n for n in names if n not in BASELINE_PRESETS]
+    if unknown:
+        raise InvalidParameters(
+            f"unknown baseline {', '.join(unknown)}; choose from {', '.join(BASELINE_PRESETS)} or 'none'"
+        )
+    return tuple(dict.fromkeys(names))
+
+
+def conventional_mesh(part: LoadedPart, preset: Preset) -> tuple[np.ndarray, np.ndarray]:
+    """OCCT's BRepMesh of the part at ``preset``: vertices merged as an STL reader merges them (equal
+    float32 coordinates), triangles oriented outward."""
+    comp = part.compound
+    BRepTools.Clean_s(comp)  # otherwise a finer triangulation already on the faces is reused
+    BRepMesh_IncrementalMesh(
+        comp, preset.linear, False, preset.angular, True
+    )  # faces in parallel, as slicers do
+    xyz, tris, off = [], [], 0
+    exp = TopExp_Explorer(comp, TopAbs_FACE)
+    while exp.More():
+        face = TopoDS.Face(exp.Current())
+        loc = TopLoc_Location()
+        tri = BRep_Tool.Triangulation_s(face, loc)
+        if tri is None:
+            raise TessellationError("BRepMesh left a face without triangles")
+        trsf = loc.Transformation()
+        n = tri.NbNodes()
+        xyz.append(np.array([tri.Node(i).Transformed(trsf).Coord() for i in range(1, n + 1)]))
+        t = np.array([tri.Triangle(i).Get() for i in range(1, tri.NbTriangles() + 1)], dtype=np.int64) - 1
+        if face.Orientation() == TopAbs_REVERSED:
+            t = t[:, ::-1]
+        tris.append(t + off)
+        off += n
+        exp.Next()
+    BRepTools.Clean_s(comp)
+    v32 = np.concatenate(xyz).astype(np.float32)
+    uniq, inv = np.unique(v32, axis=0, return_inverse=True)
+    t = inv.reshape(-1)[np.concatenate(tris)]
+    t = t[(t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 2] != t[:, 0])]
+    return uniq.astype(np.float64), t
+
+
+# --- the JSON contract -----------------------------------------------------------------------------
+_MM = "mm"
+
+
+class Summary(BaseModel):
+    """Statistics of the per-layer metrics over the layers where they are defined."""
+
+    max_vertex_dev: float | None = Field(None, ge=0, description="Largest layer vertex_dev, mm.")
+    mean_vertex_dev: float | None = Field(None, ge=0, description="Mean of the layers' vertex_dev, mm.")
+    p95_vertex_dev: float | None = Field(None, ge=0, description="95th percentile of vertex_dev, mm.")
+    max_chord_dev: float | None = Field(None, ge=0, description="Largest layer chord_dev, mm.")
+    mean_chord_dev: float | None = Field(None, ge=0, description="Mean of the layers' chord_dev, mm.")
+    p95_chord_dev: float | None = Field(None, ge=0, description="95th percentile of chord_dev, mm.")
+    max_perimeter_err: float | None = Field(None, ge=0, description="Largest relative perimeter error.")
+    mean_perimeter_err: float | None = Field(None, ge=0, description="Mean relative perimeter error.")
+    p95_perimeter_err: float | None = Field(None, ge=0, description="95th percentile of perimeter_err.")
+    layers_missing: int = Field(
+        0, ge=0, description="Layers where the exact section exists but the mesh cut is empty."
+    )
+    layers_extra: int = Field(
+        0, ge=0, description="Layers where the mesh cut exists but the exact section is empty."
+    )
+    layers_loop_mismatch: int = Field(
+        0, ge=0, description="Layers whose loop count differs from the exact one."
+    )
+
+
+class Layer(BaseModel):
+    """One slicing plane: the mesh's cut there against the exact section."""
+
+    index: int = Field(ge=0, description="Plane index, 0 = first layer.")
+    z: float = Field(description="Plane height above the lowest point, mm (as the slicer computes it).")
+    vertex_dev: float | None = Field(
+        None, ge=0, description="Max distance of the cut's vertices from the exact section, mm (eq. 1)."
+    )
+    chord_dev: float | None = Field(
+        None, ge=0, description="Two-sided max distance between the cut polyline and the exact section, mm."
+    )
+    perimeter_err: float | None = Field(
+        None, ge=0, description="|L_exact - L_cut| / L_exact (eq. 2); 1 when the cut is empty."
+    )
+    loops: int = Field(ge=0, description="Closed loops of the cut.")
+    loops_exact: int = Field(ge=0, description="Loops of the exact section.")
+    open_chains: int = Field(0, ge=0, description="Cut chains that do not close (holes in the mesh).")
+    vertices: int = Field(ge=0, description="Vertices of the cut.")
+
+
+class MeshReport(BaseModel):
+    name: str = Field(description="'dst', a baseline preset name, or the measured file's name.")
+    kind: Literal["dst", "baseline", "input"]
+    description: str = Field("", description="How the mesh was made.")
+    triangles: int = Field(ge=0)
+    vertices: int = Field(ge=0)
+    stl_bytes: int = Field(ge=0, description="Size as binary STL, bytes.")
+    watertight: bool = Field(description="Closed, consistently oriented 2-manifold.")
+    open_edges: int = Field(ge=0)
+    nonmanifold_edges: int = Field(ge=0)
+    volume_mm3: float = Field(description="Enclosed (signed) volume, mm^3.")
+    volume_rel_err: float | None = Field(None, description="(mesh volume - exact volume) / exact volume.")
+    seconds: float | None = Field(
+        None, ge=0, description="Time taken to build the mesh, s (None if not built here)."
+    )
+    summary: Summary
+    ratios: dict[str, float | None] | None = Field(
+        None, description="This mesh's summary metric / DST's (baselines only); None where DST's is 0."
+    )
+    layers: list[Layer]
+
+
+class InputInfo(BaseModel):
+    file: str = Field(description="The STEP file's name.")
+    source_units: list[str] = Field(description="Length units declared in the file (converted to mm).")
+    solids: int = Field(ge=0)
+    bbox_min: tuple[float, float, float] = Field(
+        description="Exact-lowest-point-based box corner, mm (file coordinates)."
+    )
+    bbox_max: tuple[float, float, float]
+    height_mm: float = Field(ge=0, description="Exact height (highest minus lowest point), mm.")
+    volume_mm3: float = Field(description="Exact B-rep volume, mm^3.")
+
+
+class ReferenceInfo(BaseModel):
+    method: str = Field(description="How the exact section points were computed.")
+    chord_mm: float = Field(
+        description="Largest distance between the exact curves and the reference polylines, mm."
+    )
+    spacing_mm: float = Field(description="Point spacing along polylines for the two-sided distance, mm.")
+    resolution_mm: float = Field(
+        description="Reported distances are within this of the distances to the exact section curves, mm."
+    )
+    distances: str = Field(description="How the distances were computed.")
+    seconds: float = Field(ge=0)
+    loops: int = Field(ge=0, description="Exact section loops over all planes.")
+
+
+class Report(BaseModel):
+    """A deviation report (JSON contract, versioned)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    version: Literal["1.0"] = REPORT_VERSION
+    input: InputInfo
+    params: SliceParams
+    planes: list[float] = Field(description="Plane heights above the lowest point, mm, one per layer.")
+    reference: ReferenceInfo
+    meshes: list[MeshReport]
+    warnings: list[str]
+
+
+# --- the computation -------------------------------------------------------------------------------
+@dataclass
+class MeshInput:
+    """A mesh to measure: float coordinates as its STL holds them (mm), outward triangles."""
+
+    name: str
+    kind: Literal["dst", "baseline", "input"]
+    vertices: np.ndarray
+    triangles: np.ndarray
+    seconds: float | None = None
+    description: str = ""
+
+
+def build_report(
+    part: LoadedPart,
+    params: SliceParams,
+    *,
+    file_name: str,
+    dst: DstMesh | None = None,
+    meshes: Sequence[MeshInput] = (),
+    baselines: Sequence[str] = DEFAULT_BASELINES,
+    progress: Progress | None = None,
+) -> Report:
+    """Measure ``dst`` (if given), ``meshes`` and the ``baselines`` presets against the exact part."""
+    report = progress or (lambda stage, frac: None)
+    baselines = parse_baselines(list(baselines))
+    warnings: list[str] = []
+    report("exact sections", 0.0)
+    t = time.perf_counter()
+    diag, _ = bbox_diagonal(part)
+    deflection = 0.5 * min(
+        C.TOPO_DEFLECTION_MAX_MM, max(C.TOPO_DEFLECTION_MIN_MM, C.TOPO_DEFLECTION_REL * diag)
+    )
+    chord = min(REFERENCE_CHORD_MM, 0.1 * params.chord_error)
+    # plane heights: the DST mesh's own (identical by construction), else planned from the exact height
+    if dst is not None:
+        heights = dst.planes.section_z
+    else:
+
+        def heights(height: float) -> np.ndarray:
+            return plan_planes(height=height, params=params).section_z
+
+    ref = exact_sections(
+        part, heights, chord=chord, segment_length=REFERENCE_SEGMENT_MM, deflection=deflection
+    )
+    heights = ref.heights
+    planes_z = plan_planes(height=ref.zmax - ref.zmin, params=params).z if dst is None else dst.planes.z
+    ref_seg, ref_plane = loops_to_segments(ref.loops)
+    ref_set = SegmentSet(ref_seg, ref_plane, bulge=arc_bulge(ref.loops))
+    ref_perimeter = ref.perimeters()
+    ref_seconds = time.perf_counter() - t
+    n_planes = len(heights)
+    loops_exact = np.array([len(ls) for ls in ref.loops], dtype=np.int64)
+    exact_volume = float(sum(solid_volume(s) for s in part.solids))
+
+    todo: list[MeshInput] = []
+    if dst is not None:
+        todo.append(
+            MeshInput(
+                "dst",
+                "dst",
+                dst.vertices32.astype(np.float64),
+                dst.triangles,
+                dst.stats.get("timings_s", {}).get("total"),
+                f"DST, segment_length {params.segment_length} mm, chord_error {params.chord_error} mm",
+            )
+        )
+    todo.extend(meshes)
+    results: list[MeshReport] = []
+    total = len(todo) + len(baselines)
+    for i, name in enumerate(baselines):
+        report(f"baseline {name}", 0.3 + 0.6 * (len(todo) + i) / total)
+        preset = BASELINE_PRESETS[name]
+        t = time.perf_counter()
+        v, tr = conventional_mesh(part, preset)
+        todo.append(
+            MeshInput(
+                name,
+                "baseline",
+                v,
+                tr,
+                time.perf_counter() - t,
+                f"OCCT BRepMesh, linear {preset.linear} mm, angular {preset.angular} rad: {preset.source}",
+            )
+        )
+    for i, m in enumerate(todo):
+        report(f"measuring {m.name}", 0.3 + 0.6 * i / max(total, 1))
+        results.append(
+            _measure(m, heights, planes_z, ref_set, ref_perimeter, loops_exact, exact_volume, n_planes)
+        )
+
+    dst_summary = next((r.summary for r in results if r.kind == "dst"), None)
+    if dst_summary is not None:
+        for r in results:
+            if r.kind != "dst":
+                r.ratios = _ratios(r.summary, dst_summary)
+
+    # --- warnings ----------------------------------------------------------------------------------
+    warnings.extend(part.warnings)
+    if dst is not None:
+        warnings.extend(w for w in dst.warnings if w not in warnings)
+    else:
+        warnings.extend(simplification_warnings(params))
+    for j in ref.flat_planes:
+        msg = f"a flat face lies on slicing plane {j} (z = {planes_z[j]:.4f} mm)"
+        if not any(w.startswith(msg) for w in warnings):
+            warnings.append(
+                msg + ": the exact section there is an area, and slicers disagree on it; the report "
+                "measures the outline just above the plane"
+            )
+    small = [(j, _loop_length(p)) for j, ls in enumerate(ref.loops) for p in ls]
+    small = [(j, length) for j, length in small if length < CURA_MIN_CIRCUMFERENCE_MM]
+    if small:
+        j, length = min(small, key=lambda x: x[1])
+        warnings.append(
+            f"{len(small)} exact section loop(s) are shorter than {CURA_MIN_CIRCUMFERENCE_MM} mm "
+            f"(the smallest, {length:.3g} mm, at z = {planes_z[j]:.4f} mm): Cura drops such loops "
+            "(minimum_polygon_circumference), so they will not print whatever the mesh"
+        )
+    for r in results:
+        warnings.extend(_mesh_warnings(r))
+    box_lo, box_hi = xy_box(part)
+    warnings.extend(_placement_warnings(todo, box_lo, box_hi))
+
+    report("done", 1.0)
+    return Report(
+        input=InputInfo(
+            file=os.path.basename(file_name),
+            source_units=sorted(set(part.source_units)),
+            solids=len(part.solids),
+            bbox_min=(*box_lo, ref.zmin),
+            bbox_max=(*box_hi, ref.zmax),
+            height_mm=ref.zmax - ref.zmin,
+            volume_mm3=exact_volume,
+        ),
+        params=params,
+        planes=[float(z) for z in planes_z],
+        reference=ReferenceInfo(
+            method=ref.method,
+            chord_mm=chord,
+            spacing_mm=DENSE_SPACING_MM,
+            resolution_mm=chord,
+            distances=(
+                "to the nearest reference segment, exactly (k-d tree over points every "
+                f"{DENSE_SPACING_MM} mm along the segments, then point-to-segment distances); chord_dev is "
+                f"the larger of the two one-sided maxima over points every {DENSE_SPACING_MM} mm along the "
+                "cut and along the reference; meshes are cut with a vertex on a plane counting as below it"
+            ),
+            seconds=round(ref_seconds, 4),
+            loops=int(loops_exact.sum()),
+        ),
+        meshes=results,
+        warnings=warnings,
+    )
+
+
+def _measure(
+    m: MeshInput,
+    heights: np.ndarray,
+    planes_z: np.ndarray,
+    ref_set: SegmentSet,
+    ref_perimeter: np.ndarray,
+    loops_exact: np.ndarray,
+    exact_volume: float,
+    n_planes: int,
+) -> MeshReport:
+    v = np.array(m.vertices, dtype=np.float64)
+    tr = np.asarray(m.triangles, dtype=np.int64).reshape(-1, 3)
+    if len(v):
+        v[:, 2] -= v[:, 2].min()  # the slicer drops the mesh onto the bed
+    cut = cut_mesh(v, tr, heights)
+    met = compare(cut, ref_set, ref_perimeter, n_planes)
+    open_edges, nonmanifold = edge_defects(tr, len(v)) if len(tr) else (0, 0)
+    volume = signed_volume(v, tr) if len(tr) else 0.0
+    layers = [
+        Layer(
+            index=j,
+            z=float(planes_z[j]),
+            vertex_dev=_num(met.vertex_dev[j]),
+            chord_dev=_num(met.chord_dev[j]),
+            perimeter_err=_num(met.perimeter_err[j]),
+            loops=int(met.loops[j]),
+            loops_exact=int(loops_exact[j]),
+            open_chains=int(met.open_chains[j]),
+            vertices=int(met.vertices[j]),
+        )
+        for j in range(n_planes)
+    ]
+    cut_has = met.vertices > 0
+    ref_has = loops_exact > 0
+    summary = Summary(
+        **_stats("vertex_dev", met.vertex_dev),
+        **_stats("chord_dev", met.chord_dev),
+        **_stats("perimeter_err", met.perimeter_err),
+        layers_missing=int((ref_has & ~cut_has).sum()),
+        layers_extra=int((cut_has & ~ref_has).sum()),
+        layers_loop_mismatch=int((met.loops + met.open_chains != loops_exact).sum()),
+    )
+    return MeshReport(
+        name=m.name,
+        kind=m.kind,
+        description=m.description,
+        triangles=len(tr),
+        vertices=len(v),
+        stl_bytes=84 + 50 * len(tr),
+        watertight=open_edges == 0 and nonmanifold == 0 and len(tr) > 0,
+        open_edges=open_edges,
+        nonmanifold_edges=nonmanifold,
+        volume_mm3=volume,
+        volume_rel_err=(volume - exact_volume) / exact_volume if exact_volume > 0 else None,
+        seconds=None if m.seconds is None else round(float(m.seconds), 4),
+        summary=summary,
+        layers=layers,
+    )
+
+
+def _num(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None
+
+
+def _stats(name: str, values: np.ndarray) -> dict[str, float | None]:
+    ok = values[np.isfinite(values)]
+    if not len(ok):
+        return {f"max_{name}": None, f"mean_{name}": None, f"p95_{name}": None}
+    return {
+        f"max_{name}": float(ok.max()),
+        f"mean_{name}": float(ok.mean()),
+        f"p95_{name}": float(np.percentile(ok, 95)),
+    }
+
+
+def _ratios(s: Summary, dst: Summary) -> dict[str, float | None]:
+    out: dict[str, float | None] = {}
+    for key in (
+        "max_vertex_dev",
+        "mean_vertex_dev",
+        "max_chord_dev",
+        "mean_chord_dev",
+        "p95_chord_dev",
+        "max_perimeter_err",
+        "mean_perimeter_err",
+    ):
+        a, b = getattr(s, key), getattr(dst, key)
+        out[key] = a / b if a is not None and b else None
+    return out
+
+
+def _mesh_warnings(r: MeshReport) -> list[str]:
+    out = []
+    s = r.summary
+    if s.layers_missing:
+        out.append(
+            f"{r.name}: {s.layers_missing} layer(s) where the part has a section but the mesh has none"
+        )
+    if s.layers_extra:
+        out.append(f"{r.name}: {s.layers_extra} layer(s) where the mesh has a section but the part has none")
+    if not r.watertight:
+        out.append(
+            f"{r.name}: the mesh is not watertight ({r.open_edges} open and {r.nonmanifold_edges} non-manifold "
+            "edges); slicers must guess its contours"
+        )
+    if r.volume_rel_err is not None and abs(r.volume_rel_err) > VOLUME_WARN_REL:
+        out.append(f"{r.name}: encloses {100 * r.volume_rel_err:+.1f}% of the exact volume")
+    return out
+
+
+def _placement_warnings(todo: Sequence[MeshInput], lo: tuple, hi: tuple) -> list[str]:
+    out = []
+    size = max(hi[0] - lo[0], hi[1] - lo[1])
+    for m in todo:
+        if m.kind != "input" or not len(m.vertices):
+            continue
+        mlo, mhi = m.vertices[:, :2].min(axis=0), m.vertices[:, :2].max(axis=0)
+        off = float(np.max(np.abs(np.concatenate([mlo - lo, mhi - hi]))))
+        if off > max(1.0, 0.05 * size):
+            out.append(
+                f"{m.name}: its x/y extent differs from the part's by up to {off:.3g} mm: is it placed in the "
+                "STEP file's coordinates (not centred or moved by a slicer)? Distances assume it is"
+            )
+    return out
+
+
+def xy_box(part: LoadedPart) -> tuple[tuple[float, float], tuple[float, float]]:
+    """The part's tight x/y extent, mm (from the B-rep, not a mesh)."""
+    box = Bnd_Box()
+    BRepBndLib.AddOptimal_s(part.compound, box, False, False)
+    lo, hi = box.CornerMin().Coord(), box.CornerMax().Coord()
+    return (lo[0], lo[1]), (hi[0], hi[1])
+
+
+def _loop_length(p: np.ndarray) -> float:
+    return float(np.linalg.norm(np.roll(p, -1, axis=0) - p, axis=1).sum())
