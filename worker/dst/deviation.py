@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 # Any spacing gives exact distances (the search widens until it is sure); this one keeps it fast.
 DENSE_SPACING_MM = 0.2
 _K_NEIGHBOURS = 4
-CORNER_RAD = 0.3  # a reference polyline turning more than this at a vertex has a corner there
+CORNER_RAD = 1.0  # a reference polyline turning more than this (rad) at a vertex has a corner there
 _PLANE_SEPARATION_MM = 1e7  # farther than any two points of a part in one plane
 
 
@@ -128,17 +128,26 @@ def loops_to_segments(loops: list[list[np.ndarray]]) -> tuple[np.ndarray, np.nda
     return np.concatenate(segs), np.concatenate(planes)
 
 
-def arc_bulge(loops: list[list[np.ndarray]], *, corner_rad: float = CORNER_RAD) -> np.ndarray:
-    """Signed offset (along each span's left normal) of the curve's midpoint from the span's midpoint,
-    for closed polylines sampled densely on a smooth curve, in ``loops_to_segments`` order.
+def span_curvatures(
+    loops: list[list[np.ndarray]],
+    *,
+    chord: float | None = None,
+    corners: list[list[np.ndarray]] | None = None,
+    corner_rad: float = CORNER_RAD,
+) -> np.ndarray:
+    """Signed curvature (1/mm, > 0 turning left) of the curve at the start and the end of every span,
+    (n, 2) in ``loops_to_segments`` order, for closed polylines whose vertices lie on smooth curves
+    with every span's midpoint within ``chord`` of the span.
 
-    The curvature at each vertex is that of the circle through it and its two neighbours; a span takes
-    the mean of its two ends', leaving out an end where the polyline turns by more than ``corner_rad``
-    (a corner of the section, where the curve is not smooth). A span between two corners is straight.
+    The curvature at a vertex is that of the circle through it and its two neighbours. A vertex is a
+    corner of the section (no curvature to carry across it) where the polyline turns by more than
+    ``corner_rad``, or where that circle would put an adjacent span's midpoint farther than 4 ``chord``
+    from the span (impossible on the sampled curve). A span with one corner end takes the other end's
+    curvature at both; a span between two corners is straight.
     """
     out = []
-    for ls in loops:
-        for p in ls:
+    for j, ls in enumerate(loops):
+        for li, p in enumerate(ls):
             a = p - np.roll(p, 1, axis=0)  # into each vertex
             b = np.roll(p, -1, axis=0) - p  # out of each vertex
             cross = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
@@ -148,12 +157,41 @@ def arc_bulge(loops: list[list[np.ndarray]], *, corner_rad: float = CORNER_RAD) 
             with np.errstate(divide="ignore", invalid="ignore"):
                 kappa = np.where(la * lb * lc > 0, 2.0 * cross / (la * lb * lc), 0.0)
             smooth = np.abs(np.arctan2(cross, dot)) < corner_rad
+            if chord is not None:
+                smooth &= np.abs(kappa) * np.maximum(la, lb) ** 2 / 8.0 <= 4.0 * chord
+            if corners is not None:
+                smooth &= ~corners[j][li]
             k0, k1 = kappa, np.roll(kappa, -1)
             s0, s1 = smooth, np.roll(smooth, -1)
-            n = s0.astype(float) + s1
-            span_k = np.where(n > 0, (np.where(s0, k0, 0.0) + np.where(s1, k1, 0.0)) / np.maximum(n, 1), 0.0)
-            out.append(-span_k * lb**2 / 8.0)
-    return np.concatenate(out) if out else np.zeros(0)
+            start = np.where(s0, k0, np.where(s1, k1, 0.0))
+            end = np.where(s1, k1, np.where(s0, k0, 0.0))
+            out.append(np.column_stack([start, end]))
+    return np.concatenate(out) if out else np.zeros((0, 2))
+
+
+def _offset(t: np.ndarray, k0: np.ndarray, k1: np.ndarray, length2: np.ndarray) -> np.ndarray:
+    """Offset along the span's left normal, at chord parameter t, of the curve whose curvature goes
+    linearly from k0 to k1 along the span (y'' = -kappa L^2, y(0) = y(1) = 0)."""
+    phi0 = t * t / 2.0 - t**3 / 6.0 - t / 3.0
+    phi1 = t**3 / 6.0 - t / 6.0
+    return length2 * (k0 * phi0 + k1 * phi1)
+
+
+def _slope(t: np.ndarray, k0: np.ndarray, k1: np.ndarray, length2: np.ndarray) -> np.ndarray:
+    return length2 * (k0 * (t - t * t / 2.0 - 1.0 / 3.0) + k1 * (t * t / 2.0 - 1.0 / 6.0))
+
+
+def curve_lengths(seg: np.ndarray, curv: np.ndarray) -> np.ndarray:
+    """Length of each span's modelled curve (chord length plus the arc's excess, Gauss quadrature)."""
+    length = np.linalg.norm(seg[:, 1] - seg[:, 0], axis=1)
+    if not len(seg):
+        return length
+    x, w = np.polynomial.legendre.leggauss(6)
+    t = 0.5 * (x + 1.0)
+    dy = _slope(t[None, :], curv[:, :1], curv[:, 1:], (length**2)[:, None])  # dy/dt; dy/dx = dy/dt / L
+    with np.errstate(divide="ignore", invalid="ignore"):
+        slope = np.where(length[:, None] > 0, dy / length[:, None], 0.0)
+    return length * (0.5 * w[None, :] * np.sqrt(1.0 + slope**2)).sum(axis=1)
 
 
 def segment_lengths_per_plane(seg: np.ndarray, seg_plane: np.ndarray, n_planes: int) -> np.ndarray:
@@ -183,19 +221,21 @@ def midpoints(seg: np.ndarray) -> np.ndarray:
     return 0.5 * (seg[:, 0] + seg[:, 1])
 
 
-def arc_midpoints(seg: np.ndarray, bulge: np.ndarray) -> np.ndarray:
+def arc_midpoints(seg: np.ndarray, curv: np.ndarray) -> np.ndarray:
+    """The modelled curve's point over each span's midpoint."""
     ab = seg[:, 1] - seg[:, 0]
     length = np.linalg.norm(ab, axis=1)
     normal = np.column_stack([-ab[:, 1], ab[:, 0]]) / np.where(length > 0, length, 1.0)[:, None]
-    return midpoints(seg) + bulge[:, None] * normal
+    off = _offset(np.full(len(seg), 0.5), curv[:, 0], curv[:, 1], length**2)
+    return midpoints(seg) + off[:, None] * normal
 
 
 class SegmentSet:
-    """Distance from points to the nearest of a set of segments (or shallow arcs) in the same plane.
+    """Distance from points to the nearest of a set of segments (or shallow curves) in the same plane.
 
-    With ``bulge`` (see :func:`arc_bulge`) each segment stands for the parabolic arc through its ends
-    whose midpoint is offset by ``bulge`` along the segment's left normal: the dense exact points of a
-    smooth curve then give distances to the curve itself, not to its polyline.
+    With ``curv`` (see :func:`span_curvatures`) each segment stands for the curve through its ends
+    whose curvature goes linearly between the given end values: dense exact points of a smooth curve
+    then give distances to the curve itself, not to its polyline.
     """
 
     def __init__(
@@ -204,11 +244,13 @@ class SegmentSet:
         seg_plane: np.ndarray,
         *,
         spacing: float = DENSE_SPACING_MM,
-        bulge: np.ndarray | None = None,
+        curv: np.ndarray | None = None,
     ):
         self.seg, self.seg_plane, self.spacing = seg, seg_plane, spacing
-        self.bulge = np.zeros(len(seg)) if bulge is None else np.asarray(bulge, dtype=np.float64)
-        self.max_bulge = float(np.abs(self.bulge).max()) if len(self.bulge) else 0.0
+        self.curv = np.zeros((len(seg), 2)) if curv is None else np.asarray(curv, dtype=np.float64)
+        self.len2 = ((seg[:, 1] - seg[:, 0]) ** 2).sum(axis=1)
+        # largest offset of a curve from its span: |phi0|, |phi1| <= 1/8
+        self.max_offset = float((self.len2 * np.abs(self.curv).sum(axis=1)).max() / 8.0) if len(seg) else 0.0
         pts, plane, self.owner = densify(seg, seg_plane, spacing)
         self.tree = cKDTree(self._lift(pts, plane)) if len(pts) else None
 
@@ -233,30 +275,32 @@ class SegmentSet:
             dk, ik = self.tree.query(q[todo], k=k, workers=-1)
             dk, ik = dk.reshape(len(todo), k), ik.reshape(len(todo), k)
             cand = self.owner[ik]  # (n, k) segment ids
-            d[todo] = _point_arc(
-                p2[todo][:, None, :], self.seg[cand, 0], self.seg[cand, 1], self.bulge[cand]
+            d[todo] = _point_curve(
+                p2[todo][:, None, :], self.seg[cand, 0], self.seg[cand, 1], self.curv[cand], self.len2[cand]
             ).min(axis=1)
             if k == self.tree.n:
                 break
             # The nearest segment has a dense point within d + spacing/2 of the query: when the k
             # points found do not cover that ball, look again with more.
-            todo = todo[dk[:, -1] <= d[todo] + 0.5 * self.spacing + self.max_bulge]
+            todo = todo[dk[:, -1] <= d[todo] + 0.5 * self.spacing + self.max_offset]
             k *= 4
         out[has] = d
         return out
 
 
-def _point_arc(p: np.ndarray, a: np.ndarray, b: np.ndarray, bulge: np.ndarray) -> np.ndarray:
-    """Distance from points ``p`` (..., 2) to the arcs over segments ``a``-``b`` (..., 2), broadcast.
+def _point_curve(
+    p: np.ndarray, a: np.ndarray, b: np.ndarray, curv: np.ndarray, len2: np.ndarray
+) -> np.ndarray:
+    """Distance from points ``p`` (..., 2) to the curves over segments ``a``-``b`` (..., 2), broadcast.
 
-    The arc point used is the one over the projection of ``p`` on the chord (the parabola's offset there
-    is 4 bulge t (1 - t)); for a shallow arc this is the nearest point to second order in its slope.
+    The curve point used is the one over the projection of ``p`` on the chord; for a shallow curve
+    that is the nearest point to second order in its slope.
     """
     abx, aby = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
     apx, apy = p[..., 0] - a[..., 0], p[..., 1] - a[..., 1]
-    denom = abx * abx + aby * aby
-    t = np.clip((apx * abx + apy * aby) / np.where(denom > 0, denom, 1.0), 0.0, 1.0)
-    off = 4.0 * bulge * t * (1.0 - t) / np.sqrt(np.where(denom > 0, denom, 1.0))  # per unit of |ab|
+    denom = np.where(len2 > 0, len2, 1.0)
+    t = np.clip((apx * abx + apy * aby) / denom, 0.0, 1.0)
+    off = _offset(t, curv[..., 0], curv[..., 1], len2) / np.sqrt(denom)  # per unit of |ab|
     dx, dy = apx - t * abx + off * aby, apy - t * aby - off * abx
     return np.sqrt(dx * dx + dy * dy)
 
@@ -300,7 +344,7 @@ def compare(cut: MeshCut, ref: SegmentSet, ref_perimeter: np.ndarray, n_planes: 
 
     cut_set = SegmentSet(cut.seg, cut.seg_plane, spacing=ref.spacing)
     # every vertex of the closed reference loops and the curve's point over every span's midpoint
-    ref_pts = np.concatenate([ref.seg[:, 0], arc_midpoints(ref.seg, ref.bulge)])
+    ref_pts = np.concatenate([ref.seg[:, 0], arc_midpoints(ref.seg, ref.curv)])
     ref_pl = np.concatenate([ref.seg_plane, ref.seg_plane])
     cut_mid, cut_mid_pl = midpoints(cut.seg), cut.seg_plane
     d_ref_to_cut = max_per_plane(cut_set.distance(ref_pts, ref_pl), ref_pl, n_planes)

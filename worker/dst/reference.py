@@ -32,12 +32,18 @@ from worker.dst.step_io import LoadedPart
 from worker.dst.topomesh import build_topomesh
 
 
+# The exact section of a plane through a flat face is taken this far above the plane (beyond the
+# on-plane snapping tolerance): a wall standing on the face moves by this times its slope's cotangent.
+FLAT_FACE_LIFT_MM = 1e-4
+
+
 @dataclass
 class ExactSections:
     """Exact sections of a part at heights measured from its exact lowest point.
 
     heights : (P,) float64   plane heights above the lowest point, mm
     loops : per plane, a list of (k, 2) float64 closed polylines in (x, y), mm (first point not repeated)
+    corners : per plane and loop, (k,) bool: the section changes face or meets a B-rep edge there
     zmin, zmax : the part's exact lowest and highest z in its own coordinates, mm
     chord : largest distance between the exact curve and the polylines, mm
     method : how the points were computed (for the report)
@@ -45,6 +51,7 @@ class ExactSections:
 
     heights: np.ndarray
     loops: list[list[np.ndarray]]
+    corners: list[list[np.ndarray]]
     zmin: float
     zmax: float
     chord: float
@@ -73,10 +80,16 @@ def exact_sections(
         heights = heights(zmax - zmin)
     world = zmin + np.asarray(heights, dtype=np.float64)
     loops: list[list[np.ndarray]] = [[] for _ in range(len(world))]
-    flat: set[int] = set()
-    for mesh in meshes:
-        topo = cut_topology(mesh, world, on_plane_tol=C.ON_PLANE_TOL_MM)
-        flat.update(topo.flat_planes)
+    corners: list[list[np.ndarray]] = [[] for _ in range(len(world))]
+    topos = [cut_topology(mesh, world, on_plane_tol=C.ON_PLANE_TOL_MM) for mesh in meshes]
+    flat = sorted({j for topo in topos for j in topo.flat_planes})
+    if flat:
+        # A plane through a flat face: measure the section just above it, as a mesh cut is measured
+        # (a vertex on a plane counts as below it), i.e. the outline of what stands on the face.
+        world = world.copy()
+        world[flat] += FLAT_FACE_LIFT_MM
+        topos = [cut_topology(mesh, world, on_plane_tol=C.ON_PLANE_TOL_MM) for mesh in meshes]
+    for mesh, topo in zip(meshes, topos, strict=True):
         pool = VertexPool()
         sampler = RingSampler(mesh, topo, pool, segment_length=segment_length, chord_error=chord)
         annulus = topo.comp_is_annulus
@@ -88,13 +101,15 @@ def exact_sections(
         for li, ids in rings.items():
             j = int(topo.loops[li][0])
             loops[j].append(xyz[ids, :2].copy())
+            corners[j].append(np.array([v in sampler.corner_vids for v in ids], dtype=bool))
     return ExactSections(
         heights=np.asarray(heights, dtype=np.float64),
         loops=loops,
+        corners=corners,
         zmin=zmin,
         zmax=zmax,
         chord=chord,
-        flat_planes=sorted(flat),
+        flat_planes=flat,
         method=(
             "points solved exactly on the B-rep faces and edges (Newton / Brent, |z - plane| < "
             f"{C.LEVEL_TOL_MM:g} mm) and joined into closed polylines, sampled until each span's midpoint "

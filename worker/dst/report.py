@@ -30,17 +30,18 @@ from worker.dst import constants as C
 from worker.dst.deviation import (
     DENSE_SPACING_MM,
     SegmentSet,
-    arc_bulge,
     compare,
+    curve_lengths,
     cut_mesh,
     loops_to_segments,
+    span_curvatures,
 )
 from worker.dst.errors import InvalidParameters, TessellationError
 from worker.dst.meshops import edge_defects, signed_volume
 from worker.dst.params import SliceParams
 from worker.dst.pipeline import DstMesh, bbox_diagonal, simplification_warnings
 from worker.dst.planes import plan_planes
-from worker.dst.reference import exact_sections
+from worker.dst.reference import FLAT_FACE_LIFT_MM, exact_sections
 from worker.dst.step_io import LoadedPart, solid_volume
 
 REPORT_VERSION = "1.0"
@@ -281,8 +282,9 @@ def build_report(
     heights = ref.heights
     planes_z = plan_planes(height=ref.zmax - ref.zmin, params=params).z if dst is None else dst.planes.z
     ref_seg, ref_plane = loops_to_segments(ref.loops)
-    ref_set = SegmentSet(ref_seg, ref_plane, bulge=arc_bulge(ref.loops))
-    ref_perimeter = ref.perimeters()
+    curv = span_curvatures(ref.loops, chord=chord, corners=ref.corners)
+    ref_set = SegmentSet(ref_seg, ref_plane, curv=curv)
+    ref_perimeter = np.bincount(ref_plane, weights=curve_lengths(ref_seg, curv), minlength=len(heights))
     ref_seconds = time.perf_counter() - t
     n_planes = len(heights)
     loops_exact = np.array([len(ls) for ls in ref.loops], dtype=np.int64)
@@ -339,10 +341,13 @@ def build_report(
     for j in ref.flat_planes:
         msg = f"a flat face lies on slicing plane {j} (z = {planes_z[j]:.4f} mm)"
         if not any(w.startswith(msg) for w in warnings):
-            warnings.append(
-                msg + ": the exact section there is an area, and slicers disagree on it; the report "
-                "measures the outline just above the plane"
-            )
+            warnings.append(msg + ": the exact section there is an area, and slicers disagree on it")
+    if ref.flat_planes:
+        warnings.append(
+            f"the report measures plane(s) {', '.join(map(str, ref.flat_planes))} just above the flat face "
+            f"(the exact section {FLAT_FACE_LIFT_MM} mm above the plane; every mesh cut with vertices on the "
+            "plane counting as below it), which is what a slicer keeping the outline above the face sees"
+        )
     small = [(j, _loop_length(p)) for j, ls in enumerate(ref.loops) for p in ls]
     small = [(j, length) for j, length in small if length < CURA_MIN_CIRCUMFERENCE_MM]
     if small:

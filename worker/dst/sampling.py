@@ -108,6 +108,8 @@ class RingSampler:
         # subdivided: (a, b) with a < b -> inner vertex ids from a to b
         self.edge_subdiv: dict[tuple[int, int], list[int]] = {}
         self._edge_param: dict[tuple[int, int], float] = {}
+        # vertex ids where the section changes face or meets a B-rep edge: its curvature may jump there
+        self.corner_vids: set[int] = set()
         self._ads = [f.ad for f in mesh.faces]
         self._evals = [evaluator(ad) for ad in self._ads]
         self._analytic = np.array([e is not None for e in self._evals], dtype=bool)
@@ -235,6 +237,8 @@ class RingSampler:
         faces = self.mesh.tri_face[seg_tri]
         corner = topo.cross_is_corner[cross] | (faces != np.roll(faces, 1))
         starts = np.flatnonzero(corner).tolist() or [0]
+        if corner.any():
+            self.corner_vids.update(self.crossing(int(cross[i])) for i in starts)
         runs = []
         for r, i0 in enumerate(starts):
             i1 = starts[(r + 1) % len(starts)]
@@ -263,6 +267,9 @@ class RingSampler:
         j, cross = topo.loops[li]
         zc = float(topo.planes[j])
         cl = cross.tolist()
+        faces = self.mesh.tri_face[topo.seg_tri[cross]]
+        corner = topo.cross_is_corner[cross] | (faces != np.roll(faces, 1))
+        self.corner_vids.update(self.crossing(int(c)) for c in cross[corner])
         es = self.edge_subdiv
         runs, sampled, repeats = [], [], []
         for c in cl:

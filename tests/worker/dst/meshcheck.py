@@ -59,3 +59,28 @@ def assert_slab_property(mesh, tol: float = 1e-9) -> None:
     contact = (above == 2) | (below == 2)
     assert (ring | contact | flat).all(), "an edge in a plane has more than two triangles"
     assert ring.sum() > 0.95 * len(edges), "most edges lying in a plane must be ring edges"
+
+
+def occt_section_points(solid, z: float, step: float = 0.02) -> np.ndarray:
+    """Points every ``step`` mm along OCCT's exact section (BRepAlgoAPI_Section, approximation on)
+    of ``solid`` with the plane at world height ``z``: (k, 3)."""
+    from OCP.BRepAdaptor import BRepAdaptor_Curve
+    from OCP.BRepAlgoAPI import BRepAlgoAPI_Section
+    from OCP.GCPnts import GCPnts_UniformAbscissa
+    from OCP.gp import gp_Dir, gp_Pln, gp_Pnt
+    from OCP.TopAbs import TopAbs_EDGE
+    from OCP.TopExp import TopExp_Explorer
+    from OCP.TopoDS import TopoDS
+
+    sec = BRepAlgoAPI_Section(solid, gp_Pln(gp_Pnt(0, 0, z), gp_Dir(0, 0, 1)), False)
+    sec.Approximation(True)
+    sec.Build()
+    pts = []
+    exp = TopExp_Explorer(sec.Shape(), TopAbs_EDGE)
+    while exp.More():
+        curve = BRepAdaptor_Curve(TopoDS.Edge(exp.Current()))
+        exp.Next()
+        sampler = GCPnts_UniformAbscissa(curve, step)
+        if sampler.IsDone():
+            pts.extend(curve.Value(sampler.Parameter(i)).Coord() for i in range(1, sampler.NbPoints() + 1))
+    return np.array(pts).reshape(-1, 3)

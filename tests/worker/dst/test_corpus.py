@@ -14,7 +14,12 @@ import numpy as np
 import pytest
 
 from tests.conftest import CORPUS
-from tests.worker.dst.meshcheck import assert_slab_property, assert_watertight, ring_edges
+from tests.worker.dst.meshcheck import (
+    assert_slab_property,
+    assert_watertight,
+    occt_section_points,
+    ring_edges,
+)
 from worker.dst.errors import DstError
 from worker.dst.params import SliceParams
 from worker.dst.pipeline import slice_step
@@ -60,29 +65,6 @@ def _params(path: Path) -> SliceParams:
     return COARSE.get(path.name, SliceParams(layer_height=0.2))
 
 
-def _exact_section_points(solid, z: float, step: float = 0.02) -> np.ndarray:
-    from OCP.BRepAdaptor import BRepAdaptor_Curve
-    from OCP.BRepAlgoAPI import BRepAlgoAPI_Section
-    from OCP.GCPnts import GCPnts_UniformAbscissa
-    from OCP.gp import gp_Dir, gp_Pln, gp_Pnt
-    from OCP.TopAbs import TopAbs_EDGE
-    from OCP.TopExp import TopExp_Explorer
-    from OCP.TopoDS import TopoDS
-
-    sec = BRepAlgoAPI_Section(solid, gp_Pln(gp_Pnt(0, 0, z), gp_Dir(0, 0, 1)), False)
-    sec.Approximation(True)
-    sec.Build()
-    pts = []
-    exp = TopExp_Explorer(sec.Shape(), TopAbs_EDGE)
-    while exp.More():
-        curve = BRepAdaptor_Curve(TopoDS.Edge(exp.Current()))
-        exp.Next()
-        sampler = GCPnts_UniformAbscissa(curve, step)
-        if sampler.IsDone():
-            pts.extend(curve.Value(sampler.Parameter(i)).Coord() for i in range(1, sampler.NbPoints() + 1))
-    return np.array(pts).reshape(-1, 3)
-
-
 def _distance_to_segments(p: np.ndarray, a: np.ndarray, b: np.ndarray, k: int = 8) -> np.ndarray:
     """For each point, the distance (mm, xy) to the nearest of the segments a-b.
 
@@ -118,7 +100,7 @@ def _check_against_exact_sections(mesh) -> None:
         if not sel.any():
             continue
         zw = mesh.z_offset + float(mesh.planes.section_z[j])
-        exact = np.concatenate([_exact_section_points(s, zw) for s in mesh.part.solids])[:, :2]
+        exact = np.concatenate([occt_section_points(s, zw) for s in mesh.part.solids])[:, :2]
         if len(exact) == 0:
             continue
         a = mesh.vertices[edges[sel, 0], :2]

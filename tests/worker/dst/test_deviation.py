@@ -1,0 +1,154 @@
+"""The report's metrics pinned on hand-built meshes and polylines with known deviations (no OCCT)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from worker.dst.deviation import (
+    SegmentSet,
+    compare,
+    cut_mesh,
+    loops_to_segments,
+    span_curvatures,
+)
+
+
+def circle(r: float, n: int, cx: float = 0.0, cy: float = 0.0, phase: float = 0.0) -> np.ndarray:
+    t = phase + 2 * np.pi * np.arange(n) / n
+    return np.column_stack([cx + r * np.cos(t), cy + r * np.sin(t)])
+
+
+def prism(polygon: np.ndarray, z: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """A closed prism over a CCW polygon with vertex rings at the heights ``z`` (ascending)."""
+    n = len(polygon)
+    v = np.vstack([np.column_stack([polygon, np.full(n, zk)]) for zk in z])
+    tris = []
+    for k in range(len(z) - 1):
+        for i in range(n):
+            a, b = k * n + i, k * n + (i + 1) % n
+            tris += [(a, b, b + n), (a, b + n, a + n)]
+    top = (len(z) - 1) * n
+    for i in range(1, n - 1):
+        tris += [(0, i + 1, i), (top, top + i, top + i + 1)]
+    return v, np.array(tris, dtype=np.int64)
+
+
+def reference(loops_per_plane: list[list[np.ndarray]]) -> tuple[SegmentSet, np.ndarray]:
+    seg, plane = loops_to_segments(loops_per_plane)
+    per = np.array(
+        [
+            sum(float(np.linalg.norm(np.roll(p, -1, 0) - p, axis=1).sum()) for p in ls)
+            for ls in loops_per_plane
+        ]
+    )
+    return SegmentSet(seg, plane, curv=span_curvatures(loops_per_plane)), per
+
+
+def test_square_cut_from_a_circle():
+    """A square prism whose corners lie on the circle, with its vertex ring on the plane: the cut's
+    vertices are the corners (vertex_dev 0), the deepest point is the side's midpoint
+    (chord_dev = R (1 - 1/sqrt 2)), and the perimeter is 4 sqrt(2) R against 2 pi R."""
+    r = 10.0
+    v, t = prism(circle(r, 4), (-1.0, 0.0, 1.0))
+    ref, per = reference([[circle(r, 4000)]])
+    cut = cut_mesh(v, t, np.array([0.0]))
+    assert cut.loops.tolist() == [1] and cut.open_chains.tolist() == [0]
+    assert len(cut.vertices) == 4
+    m = compare(cut, ref, np.array([2 * np.pi * r]), 1)
+    assert m.vertex_dev[0] == pytest.approx(0.0, abs=1e-9)
+    # (distances to the reference arcs are exact to second order in the arcs' slope: 1e-6 relative here)
+    assert m.chord_dev[0] == pytest.approx(r * (1 - 1 / math.sqrt(2)), rel=1e-6)
+    assert m.perimeter_err[0] == pytest.approx(
+        abs(2 * np.pi * r - 4 * math.sqrt(2) * r) / (2 * np.pi * r), rel=1e-12
+    )
+    # the reference's own perimeter (its polyline) is within 1e-6 relative of the circle's
+    assert per[0] == pytest.approx(2 * np.pi * r, rel=1e-6)
+
+
+def test_mesh_shifted_by_a_known_offset():
+    """A fine polygonal prism moved by (dx, 0): every metric follows the offset."""
+    r, dx = 5.0, 0.3
+    poly = circle(r, 3000) + [dx, 0.0]
+    v, t = prism(poly, (0.0, 2.0))
+    heights = np.array([0.5, 1.0, 1.5])
+    ref, per = reference([[circle(r, 3000)] for _ in heights])
+    m = compare(cut_mesh(v, t, heights), ref, np.full(3, 2 * np.pi * r), 3)
+    # distance of the shifted circle's points from the circle: max |sqrt((x+dx)^2 + y^2) - r| = dx
+    assert np.allclose(m.vertex_dev, dx, atol=1e-6)
+    assert np.allclose(m.chord_dev, dx, atol=1e-6)
+    assert np.allclose(m.perimeter_err, 0.0, atol=1e-6)  # moved, not resized
+    assert m.loops.tolist() == [1, 1, 1]
+
+
+def test_vertices_on_a_plane_count_as_below():
+    """A slicer's convention: a plane through a flat top face cuts nothing, one through the bottom
+    face cuts the outline, and a ring on a plane is the cut itself."""
+    sq = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 2.0], [0.0, 2.0]])
+    v, t = prism(sq, (0.0, 1.0, 2.0))
+    cut = cut_mesh(v, t, np.array([0.0, 1.0, 2.0]))
+    assert cut.loops.tolist() == [1, 1, 0]
+    lengths = np.bincount(
+        cut.seg_plane, weights=np.linalg.norm(cut.seg[:, 1] - cut.seg[:, 0], axis=1), minlength=3
+    )
+    assert lengths.tolist() == [8.0, 8.0, 0.0]
+    assert sorted(map(tuple, cut.vertices[cut.vertex_plane == 1].tolist())) == sorted(map(tuple, sq.tolist()))
+
+
+def test_empty_cut_and_missing_loop_are_reported():
+    """Plane 0: the mesh has one of the two exact loops; plane 1: the mesh ends below it; plane 2:
+    neither has a section."""
+    r = 2.0
+    v, t = prism(circle(r, 512), (0.0, 1.0))
+    loops = [[circle(r, 2000), circle(r, 2000, cx=10.0)], [circle(r, 2000)], []]
+    ref, per = reference(loops)
+    exact_per = np.array([4 * np.pi * r, 2 * np.pi * r, 0.0])
+    cut = cut_mesh(v, t, np.array([0.5, 1.5, 2.5]))
+    m = compare(cut, ref, exact_per, 3)
+    assert m.loops.tolist() == [1, 0, 0]
+    # the missing circle's far side is 10 + r from the mesh's circle: distance 10 + r - r = 10 ... its
+    # farthest point (12, 0) is 12 - 2 = 10 from the cut
+    assert m.chord_dev[0] == pytest.approx(10.0, abs=1e-3)
+    assert m.vertex_dev[0] < 1e-3  # what is there is right
+    assert m.perimeter_err[0] == pytest.approx(0.5, abs=1e-3)
+    assert math.isnan(m.vertex_dev[1]) and math.isnan(m.chord_dev[1]) and m.perimeter_err[1] == 1.0
+    assert m.vertex_dev[2] == 0.0 and m.chord_dev[2] == 0.0 and m.perimeter_err[2] == 0.0
+
+
+def test_segment_distances_are_exact_against_brute_force():
+    rng = np.random.default_rng(7)
+    a = rng.uniform(-5, 5, (400, 2))
+    seg = np.stack([a, a + rng.normal(0, 1.5, (400, 2))], axis=1)
+    plane = rng.integers(0, 3, 400)
+    pts = rng.uniform(-8, 8, (2000, 2))
+    pts_plane = rng.integers(0, 3, 2000)
+    d = SegmentSet(seg, plane, spacing=0.7).distance(pts, pts_plane)
+    for i in range(0, 2000, 37):
+        s = seg[plane == pts_plane[i]]
+        ab = s[:, 1] - s[:, 0]
+        tt = np.clip(np.einsum("ij,ij->i", pts[i] - s[:, 0], ab) / np.einsum("ij,ij->i", ab, ab), 0, 1)
+        brute = np.linalg.norm(s[:, 0] + tt[:, None] * ab - pts[i], axis=1).min()
+        assert d[i] == pytest.approx(brute, abs=1e-12)
+
+
+def test_arc_correction_measures_the_curve_not_its_polyline():
+    """A circle sampled at chord error ~1e-3: distances from exact circle points are ~0 with the arc
+    correction (to the polyline they would reach the chord error)."""
+    r = 3.0
+    p = circle(r, 140)
+    sag = r * (1 - math.cos(math.pi / 140))
+    seg, plane = loops_to_segments([[p]])
+    q = circle(r, 5000, phase=0.0123)
+    plain = SegmentSet(seg, plane).distance(q, np.zeros(len(q), dtype=np.int64))
+    arced = SegmentSet(seg, plane, curv=span_curvatures([[p]])).distance(q, np.zeros(len(q), dtype=np.int64))
+    assert plain.max() == pytest.approx(sag, rel=1e-3)
+    assert arced.max() < 1e-3 * sag
+
+
+def test_corner_is_not_rounded_by_the_arc_correction():
+    """A square's corners turn by 90 degrees: its sides stay straight."""
+    sq = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    dense = np.vstack([np.linspace(sq[i], sq[(i + 1) % 4], 50, endpoint=False) for i in range(4)])
+    assert np.abs(span_curvatures([[dense]], chord=1e-3)).max() == 0.0
