@@ -194,6 +194,28 @@ def curve_lengths(seg: np.ndarray, curv: np.ndarray) -> np.ndarray:
     return length * (0.5 * w[None, :] * np.sqrt(1.0 + slope**2)).sum(axis=1)
 
 
+def loop_successors(loops: list[list[np.ndarray]]) -> np.ndarray:
+    """Index of the next span of the same loop, for every span in ``loops_to_segments`` order."""
+    out, off = [], 0
+    for ls in loops:
+        for p in ls:
+            out.append(off + (np.arange(len(p)) + 1) % len(p))
+            off += len(p)
+    return np.concatenate(out) if out else np.zeros(0, dtype=np.int64)
+
+
+def span_max(f0: np.ndarray, fm: np.ndarray, f1: np.ndarray, cap: float) -> np.ndarray:
+    """Max over each span of the parabola through its values at t = 0, 1/2, 1 (a smooth distance
+    function peaks between samples), at most ``cap`` above the largest sample."""
+    a = 2.0 * (f0 + f1 - 2.0 * fm)
+    b = f1 - f0 - a
+    sampled = np.maximum(np.maximum(f0, f1), fm)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(a < 0, -b / (2.0 * a), -1.0)
+        peak = np.where((t > 0) & (t < 1), f0 - b * b / (4.0 * a), sampled)
+    return np.minimum(np.maximum(sampled, peak), sampled + cap)
+
+
 def segment_lengths_per_plane(seg: np.ndarray, seg_plane: np.ndarray, n_planes: int) -> np.ndarray:
     lengths = np.linalg.norm(seg[:, 1] - seg[:, 0], axis=1)
     return np.bincount(seg_plane, weights=lengths, minlength=n_planes)
@@ -245,8 +267,11 @@ class SegmentSet:
         *,
         spacing: float = DENSE_SPACING_MM,
         curv: np.ndarray | None = None,
+        nxt: np.ndarray | None = None,
+        chord: float = 0.0,
     ):
         self.seg, self.seg_plane, self.spacing = seg, seg_plane, spacing
+        self.nxt, self.chord = nxt, chord  # closed loops: next span; the curves' sampling tolerance
         self.curv = np.zeros((len(seg), 2)) if curv is None else np.asarray(curv, dtype=np.float64)
         self.len2 = ((seg[:, 1] - seg[:, 0]) ** 2).sum(axis=1)
         # largest offset of a curve from its span: |phi0|, |phi1| <= 1/8
@@ -288,21 +313,29 @@ class SegmentSet:
         return out
 
 
-def _point_curve(
-    p: np.ndarray, a: np.ndarray, b: np.ndarray, curv: np.ndarray, len2: np.ndarray
-) -> np.ndarray:
+def _point_curve(p: np.ndarray, a: np.ndarray, b: np.ndarray, curv: np.ndarray, len2: np.ndarray) -> np.ndarray:
     """Distance from points ``p`` (..., 2) to the curves over segments ``a``-``b`` (..., 2), broadcast.
 
-    The curve point used is the one over the projection of ``p`` on the chord; for a shallow curve
-    that is the nearest point to second order in its slope.
+    The nearest curve point is found from the projection on the chord by two Gauss-Newton steps in
+    the chord parameter (clamped to the span).
     """
     abx, aby = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
     apx, apy = p[..., 0] - a[..., 0], p[..., 1] - a[..., 1]
     denom = np.where(len2 > 0, len2, 1.0)
+    inv_len = 1.0 / np.sqrt(denom)
     t = np.clip((apx * abx + apy * aby) / denom, 0.0, 1.0)
-    off = _offset(t, curv[..., 0], curv[..., 1], len2) / np.sqrt(denom)  # per unit of |ab|
-    dx, dy = apx - t * abx + off * aby, apy - t * aby - off * abx
-    return np.sqrt(dx * dx + dy * dy)
+    k0, k1 = curv[..., 0], curv[..., 1]
+    curved = np.any(curv != 0)
+    for _ in range(2 if curved else 0):
+        off = _offset(t, k0, k1, len2) * inv_len  # offset along the left normal, per unit of |ab|
+        slope = _slope(t, k0, k1, len2) * inv_len
+        # C(t) - p and C'(t), with C(t) = a + t ab + off (-aby, abx)
+        rx, ry = t * abx - off * aby - apx, t * aby + off * abx - apy
+        dx, dy = abx - slope * aby, aby + slope * abx
+        t = np.clip(t - (rx * dx + ry * dy) / np.maximum(dx * dx + dy * dy, 1e-300), 0.0, 1.0)
+    off = _offset(t, k0, k1, len2) * inv_len
+    rx, ry = t * abx - off * aby - apx, t * aby + off * abx - apy
+    return np.sqrt(rx * rx + ry * ry)
 
 
 @dataclass
@@ -343,11 +376,17 @@ def compare(cut: MeshCut, ref: SegmentSet, ref_perimeter: np.ndarray, n_planes: 
     vertex_dev = max_per_plane(vdist, cut.vertex_plane, n_planes)
 
     cut_set = SegmentSet(cut.seg, cut.seg_plane, spacing=ref.spacing)
-    # every vertex of the closed reference loops and the curve's point over every span's midpoint
+    # every vertex of the closed reference loops and the curve's point over every span's midpoint;
+    # with loops known, each span's peak is interpolated from its three values
+    n_ref = len(ref.seg)
     ref_pts = np.concatenate([ref.seg[:, 0], arc_midpoints(ref.seg, ref.curv)])
     ref_pl = np.concatenate([ref.seg_plane, ref.seg_plane])
+    d_ref = cut_set.distance(ref_pts, ref_pl)
+    if ref.nxt is not None and n_ref:
+        d_ref = span_max(d_ref[:n_ref], d_ref[n_ref:], d_ref[:n_ref][ref.nxt], ref.chord)
+        ref_pl = ref.seg_plane
     cut_mid, cut_mid_pl = midpoints(cut.seg), cut.seg_plane
-    d_ref_to_cut = max_per_plane(cut_set.distance(ref_pts, ref_pl), ref_pl, n_planes)
+    d_ref_to_cut = max_per_plane(d_ref, ref_pl, n_planes)
     d_cut_to_ref = np.maximum(
         vertex_dev, max_per_plane(ref.distance(cut_mid, cut_mid_pl), cut_mid_pl, n_planes)
     )

@@ -31,10 +31,9 @@ from worker.dst.sections import cut_topology
 from worker.dst.step_io import LoadedPart
 from worker.dst.topomesh import build_topomesh
 
-
-# The exact section of a plane through a flat face is taken this far above the plane (beyond the
-# on-plane snapping tolerance): a wall standing on the face moves by this times its slope's cotangent.
-FLAT_FACE_LIFT_MM = 1e-4
+# The exact section of a plane through a flat face is taken this far above the plane (10x the on-plane
+# snapping tolerance): a wall standing on the face moves by this times its slope's cotangent.
+FLAT_FACE_LIFT_MM = 10 * C.ON_PLANE_TOL_MM
 
 
 @dataclass
@@ -81,14 +80,20 @@ def exact_sections(
     world = zmin + np.asarray(heights, dtype=np.float64)
     loops: list[list[np.ndarray]] = [[] for _ in range(len(world))]
     corners: list[list[np.ndarray]] = [[] for _ in range(len(world))]
-    topos = [cut_topology(mesh, world, on_plane_tol=C.ON_PLANE_TOL_MM) for mesh in meshes]
-    flat = sorted({j for topo in topos for j in topo.flat_planes})
-    if flat:
-        # A plane through a flat face: measure the section just above it, as a mesh cut is measured
-        # (a vertex on a plane counts as below it), i.e. the outline of what stands on the face.
-        world = world.copy()
-        world[flat] += FLAT_FACE_LIFT_MM
-        topos = [cut_topology(mesh, world, on_plane_tol=C.ON_PLANE_TOL_MM) for mesh in meshes]
+    # as in the DST build: a node within half a float32 step of a plane is on it (what a slicer sees)
+    noise = 0.5 * np.spacing(np.abs(np.asarray(heights, dtype=np.float32))).astype(np.float64)
+    topos, flat = [], set()
+    for mesh in meshes:
+        topo = cut_topology(mesh, world, on_plane_tol=C.ON_PLANE_TOL_MM, noise_tol=noise)
+        if topo.flat_planes:
+            # A plane through a flat face of this solid: measure the solid's section just above it, as
+            # a mesh cut is measured (a vertex on a plane counts as below it), i.e. the outline of what
+            # stands on the face. Other solids keep the plane where it is.
+            flat.update(topo.flat_planes)
+            lifted = world.copy()
+            lifted[topo.flat_planes] += FLAT_FACE_LIFT_MM
+            topo = cut_topology(mesh, lifted, on_plane_tol=C.ON_PLANE_TOL_MM, noise_tol=noise)
+        topos.append(topo)
     for mesh, topo in zip(meshes, topos, strict=True):
         pool = VertexPool()
         sampler = RingSampler(mesh, topo, pool, segment_length=segment_length, chord_error=chord)
@@ -109,7 +114,7 @@ def exact_sections(
         zmin=zmin,
         zmax=zmax,
         chord=chord,
-        flat_planes=flat,
+        flat_planes=sorted(flat),
         method=(
             "points solved exactly on the B-rep faces and edges (Newton / Brent, |z - plane| < "
             f"{C.LEVEL_TOL_MM:g} mm) and joined into closed polylines, sampled until each span's midpoint "

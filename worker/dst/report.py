@@ -33,6 +33,7 @@ from worker.dst.deviation import (
     compare,
     curve_lengths,
     cut_mesh,
+    loop_successors,
     loops_to_segments,
     span_curvatures,
 )
@@ -283,7 +284,7 @@ def build_report(
     planes_z = plan_planes(height=ref.zmax - ref.zmin, params=params).z if dst is None else dst.planes.z
     ref_seg, ref_plane = loops_to_segments(ref.loops)
     curv = span_curvatures(ref.loops, chord=chord, corners=ref.corners)
-    ref_set = SegmentSet(ref_seg, ref_plane, curv=curv)
+    ref_set = SegmentSet(ref_seg, ref_plane, curv=curv, nxt=loop_successors(ref.loops), chord=chord)
     ref_perimeter = np.bincount(ref_plane, weights=curve_lengths(ref_seg, curv), minlength=len(heights))
     ref_seconds = time.perf_counter() - t
     n_planes = len(heights)

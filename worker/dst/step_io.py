@@ -116,11 +116,11 @@ def read_step(path: str | os.PathLike[str]) -> LoadedPart:
     return LoadedPart(solids=solids, source_units=units, warnings=warnings, sewn=sewn)
 
 
-VOLUME_REL_EPS = 1e-7
+VOLUME_REL_EPS = 1e-8
 
 
 def solid_volume(solid: TopoDS_Shape) -> float:
-    """Volume in mm^3 by OCCT's adaptive Gauss integration on the B-rep, to a relative error of 1e-7.
+    """Volume in mm^3 by OCCT's adaptive Gauss integration on the B-rep, to a relative error of 1e-8.
 
     (The non-adaptive ``VolumeProperties`` is off by about 1% on a NURBS hemisphere.)
     """

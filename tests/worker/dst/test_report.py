@@ -1,0 +1,207 @@
+"""The deviation report against closed-form truth and against an independent recomputation.
+
+Independent here means: the baseline mesh comes from OCCT's own STL writer and is read by trimesh,
+it is cut by trimesh, and the exact section is either the closed-form circle or OCCT's
+``BRepAlgoAPI_Section`` sampled densely. None of the report's code is used to compute the expected
+numbers.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial import cKDTree
+
+from tests.worker.dst.meshcheck import occt_section_points
+from worker.dst.params import SliceParams
+from worker.dst.pipeline import slice_step
+from worker.dst.reference import exact_sections, occt_sections
+from worker.dst.report import BASELINE_PRESETS, MeshInput, Report, build_report, parse_baselines
+from worker.dst.step_io import read_step, solid_volume
+
+R = 20.0
+
+
+def occt_stl(part, preset: str, path) -> trimesh.Trimesh:
+    """The baseline mesh as OCCT's StlAPI_Writer writes it, read back by trimesh."""
+    from OCP.BRepMesh import BRepMesh_IncrementalMesh
+    from OCP.BRepTools import BRepTools
+    from OCP.StlAPI import StlAPI_Writer
+
+    comp = part.compound
+    BRepTools.Clean_s(comp)
+    p = BASELINE_PRESETS[preset]
+    BRepMesh_IncrementalMesh(comp, p.linear, False, p.angular, True)
+    writer = StlAPI_Writer()
+    writer.ASCIIMode = False
+    assert writer.Write(comp, str(path))
+    BRepTools.Clean_s(comp)
+    return trimesh.load_mesh(str(path), file_type="stl")
+
+
+def trimesh_sections(mesh: trimesh.Trimesh, heights: np.ndarray) -> list[np.ndarray]:
+    """(n, 2, 2) xy segments of the mesh at each height (the mesh dropped to z = 0 first)."""
+    m = mesh.copy()
+    m.apply_translation([0, 0, -m.bounds[0][2]])
+    out = []
+    for h in heights:
+        lines = trimesh.intersections.mesh_plane(m, plane_normal=[0, 0, 1], plane_origin=[0, 0, h])
+        out.append(np.asarray(lines)[:, :, :2].reshape(-1, 2, 2))
+    return out
+
+
+@pytest.fixture(scope="module")
+def hemisphere(tmp_path_factory):
+    from tests.conftest import build_part, write_step
+
+    d = tmp_path_factory.mktemp("hemi")
+    path = write_step(build_part("hemisphere", radius=R), d / "hemisphere.step")
+    params = SliceParams(layer_height=0.2)
+    mesh = slice_step(path, params)
+    report = build_report(mesh.part, params, file_name=str(path), dst=mesh, baselines=["occt_fast"])
+    return path, mesh, report, d
+
+
+def test_hemisphere_against_closed_form(hemisphere):
+    """Eq. 1 and eq. 2 computed from the circle of radius sqrt(R^2 - z^2), for DST and a baseline."""
+    path, mesh, report, d = hemisphere
+    z = np.asarray(mesh.planes.section_z)  # the heights the rings (and the cuts) are at
+    radius = np.sqrt(R * R - z * z)
+    dst, fast = report.meshes
+    assert (dst.name, fast.name) == ("dst", "occt_fast")
+
+    # DST: the ring vertices as the STL holds them (float32), per plane
+    v32 = mesh.vertices32.astype(np.float64)
+    for i in range(0, len(z), 7):
+        ring = v32[mesh.vertex_plane == i]
+        eq1 = np.abs(np.hypot(ring[:, 0], ring[:, 1]) - radius[i]).max()
+        assert dst.layers[i].vertex_dev == pytest.approx(eq1, abs=2e-7)
+        assert dst.layers[i].vertex_dev < 5e-6  # float32 rounding of the exact points
+
+    # the baseline: cut by trimesh from OCCT's own STL
+    cuts = trimesh_sections(occt_stl(read_step(path), "occt_fast", d / "fast.stl"), z)
+    for i in range(0, len(z), 7):
+        seg = cuts[i]
+        ends = seg.reshape(-1, 2)
+        eq1 = np.abs(np.hypot(ends[:, 0], ends[:, 1]) - radius[i]).max()
+        length = np.linalg.norm(seg[:, 1] - seg[:, 0], axis=1).sum()
+        eq2 = abs(2 * math.pi * radius[i] - length) / (2 * math.pi * radius[i])
+        # the circle's farthest point from the polyline: R - (distance of the centre to a segment)
+        ab = seg[:, 1] - seg[:, 0]
+        t = np.clip(-np.einsum("ij,ij->i", seg[:, 0], ab) / np.einsum("ij,ij->i", ab, ab), 0, 1)
+        inner = np.linalg.norm(seg[:, 0] + t[:, None] * ab, axis=1)
+        chord = max(eq1, float((radius[i] - inner).max()))
+        layer = fast.layers[i]
+        # (the B-spline sphere itself is within ~2e-6 mm of the closed-form one)
+        assert layer.vertex_dev == pytest.approx(eq1, abs=5e-6)
+        assert layer.perimeter_err == pytest.approx(eq2, abs=1e-6)
+        assert layer.chord_dev == pytest.approx(chord, abs=1e-4)
+        assert layer.loops == layer.loops_exact == 1
+
+    assert dst.summary.max_vertex_dev < 5e-6
+    assert fast.summary.max_vertex_dev > 0.05
+    assert fast.ratios["max_chord_dev"] > 3
+    # DST keeps its chord budget at every layer, measured against the exact circle
+    assert dst.summary.max_chord_dev <= mesh.params.chord_error * 1.001
+    assert dst.watertight and fast.watertight
+    assert report.input.volume_mm3 == pytest.approx(2 / 3 * math.pi * R**3, rel=1e-6)
+    assert abs(dst.volume_rel_err) < 1e-3
+
+
+def test_report_json_round_trips(hemisphere):
+    _, _, report, _ = hemisphere
+    data = json.loads(report.model_dump_json())
+    again = Report.model_validate(data)
+    assert again == report
+    assert data["version"] == "1.0"
+    assert len(data["meshes"][0]["layers"]) == len(data["planes"])
+    assert data["meshes"][0]["stl_bytes"] == 84 + 50 * data["meshes"][0]["triangles"]
+
+
+def test_missing_layers_are_reported_not_crashed(hemisphere, tmp_path):
+    """A mesh of half the part's height: its upper layers are empty, reported as missing."""
+    path, mesh, _, _ = hemisphere
+    box = trimesh.creation.box(extents=[2 * R, 2 * R, R / 2])
+    box.apply_translation([0, 0, R / 4])
+    report = build_report(
+        mesh.part,
+        mesh.params,
+        file_name=str(path),
+        meshes=[MeshInput("box", "input", box.vertices, box.faces)],
+        baselines=[],
+    )
+    (m,) = report.meshes
+    upper = [layer for layer in m.layers if layer.z > R / 2]
+    assert upper and all(layer.vertex_dev is None and layer.perimeter_err == 1.0 for layer in upper)
+    assert m.summary.layers_missing == len(upper)
+    assert any("box:" in w and "has none" in w for w in report.warnings)
+
+
+def test_unknown_baseline_is_refused():
+    from worker.dst.errors import InvalidParameters
+
+    with pytest.raises(InvalidParameters, match="unknown baseline"):
+        parse_baselines("occt_fast,nonsense")
+    assert parse_baselines("none") == ()
+
+
+def test_solid_volume_is_accurate_on_nurbs(make_step):
+    part = read_step(make_step("hemisphere", radius=10.0))
+    assert solid_volume(part.solids[0]) == pytest.approx(2 / 3 * math.pi * 1000, rel=1e-6)
+
+
+@pytest.mark.corpus
+def test_corpus_part_report_matches_independent_recomputation(corpus, tmp_path):
+    """On a real part: DST's vertices lie on the exact section, the baseline's do not, and the report's
+    per-layer vertex_dev of the baseline matches OCCT's section and trimesh's cut of OCCT's STL."""
+    path = corpus / "mechanical" / "r103ec.stp"
+    params = SliceParams(layer_height=0.2)
+    mesh = slice_step(path, params)
+    report = build_report(mesh.part, params, file_name=str(path), dst=mesh, baselines=["occt_high_quality"])
+    dst, base = report.meshes
+    assert dst.summary.max_vertex_dev < 1e-4
+    assert base.summary.max_vertex_dev > 100 * dst.summary.max_vertex_dev
+    assert dst.summary.layers_loop_mismatch == 0 and dst.watertight
+
+    z = np.asarray(mesh.planes.section_z)
+    cuts = trimesh_sections(occt_stl(mesh.part, "occt_high_quality", tmp_path / "b.stl"), z)
+    flat = set()
+    for w in report.warnings:
+        if w.startswith("the report measures plane(s)"):
+            flat = {int(x) for x in w.split("plane(s) ")[1].split(" just")[0].split(", ")}
+    step = 0.002
+    checked = 0
+    for i in range(3, len(z), max(1, len(z) // 8)):
+        if i in flat or not len(cuts[i]):
+            continue
+        exact = np.concatenate([occt_section_points(s, mesh.z_offset + z[i], step) for s in mesh.part.solids])
+        d, _ = cKDTree(exact[:, :2]).query(cuts[i].reshape(-1, 2))
+        # nearest sampled point: within step/2 of the distance to the curve
+        assert base.layers[i].vertex_dev == pytest.approx(d.max(), abs=step / 2 + 1e-6), f"layer {i}"
+        checked += 1
+    assert checked >= 5
+
+
+@pytest.mark.corpus
+def test_reference_agrees_with_occt_section(corpus):
+    """The report's reference against BRepAlgoAPI_Section's curves, both ways: OCCT's points lie on
+    the reference curves, and the reference's points lie on OCCT's curves (sampled every 2 um)."""
+    from worker.dst.deviation import SegmentSet, loops_to_segments, span_curvatures
+
+    part = read_step(corpus / "mechanical" / "r103ec.stp")
+    heights = np.array([1.1, 7.3, 15.9])
+    ref = exact_sections(part, heights, chord=1e-3, segment_length=1.0, deflection=0.005)
+    seg, plane = loops_to_segments(ref.loops)
+    curves = SegmentSet(seg, plane, curv=span_curvatures(ref.loops, chord=1e-3, corners=ref.corners))
+    occ = occt_sections(part, heights, zmin=ref.zmin, deflection=1e-5)
+    for j, h in enumerate(heights):
+        assert len(occ[j]) and ref.loops[j]
+        d = curves.distance(occ[j], np.full(len(occ[j]), j))
+        assert d.max() < 2e-4, f"plane {j}: OCCT point {d.max()} mm from the reference"
+        dense = np.concatenate([occt_section_points(s, ref.zmin + h, 0.002) for s in part.solids])[:, :2]
+        back, _ = cKDTree(dense).query(np.concatenate(ref.loops[j]))
+        assert back.max() < 0.0011 + 2e-4, f"plane {j}: reference point {back.max()} mm from OCCT's section"
