@@ -6,6 +6,8 @@ both), not of the process start-up. Prints one table; ratios are DST / conventio
 
 Targets (issue 2): the B-spline hemisphere R = 20 mm at h = 0.2 mm under 1 s; ``ec_soapbox-A.stp`` at
 h = 0.2 mm within 3x the conventional mesh's time; memory growing with the part, not planes squared.
+Target (issue 3): the deviation report with the three default baselines within 3x the DST build time
+(second table: the report's seconds, of which the exact reference and building the baselines).
 """
 
 from __future__ import annotations
@@ -26,16 +28,26 @@ CORPUS = ROOT.parent / "shared" / "corpus"
 def _dst(path: str, layer: float, q) -> None:
     from worker.dst.params import SliceParams
     from worker.dst.pipeline import slice_step
+    from worker.dst.report import DEFAULT_BASELINES, build_report
 
+    params = SliceParams(layer_height=layer)
     t = time.perf_counter()
-    mesh = slice_step(path, SliceParams(layer_height=layer))
+    mesh = slice_step(path, params)
     sec = time.perf_counter() - t
+    rss = _rss_mb()
+    t = time.perf_counter()
+    report = build_report(mesh.part, params, file_name=path, dst=mesh, baselines=DEFAULT_BASELINES)
+    report_sec = time.perf_counter() - t
     q.put(
         {
             "seconds": sec,
             "triangles": len(mesh.triangles),
-            "rss_mb": _rss_mb(),
+            "rss_mb": rss,
             "stages": mesh.stats["timings_s"],
+            "report_seconds": report_sec,
+            "reference_seconds": report.reference.seconds,
+            "baseline_seconds": sum(m.seconds or 0.0 for m in report.meshes if m.kind == "baseline"),
+            "report_rss_mb": _rss_mb(),
         }
     )
 
@@ -100,15 +112,27 @@ def main() -> None:
     head = f"{'part':32} {'DST s':>7} {'conv s':>7} {'ratio':>6} {'DST tris':>9} {'conv tris':>9} {'DST MB':>7} {'conv MB':>7}"
     print(head)
     print("-" * len(head))
+    reports = []
     for name, path in parts:
         conv = measure(_conventional, str(path), args.layer_height)
         dst = measure(_dst, str(path), args.layer_height)
+        reports.append((name, dst))
         print(
             f"{name[:32]:32} {dst['seconds']:7.2f} {conv['seconds']:7.2f} {dst['seconds'] / conv['seconds']:6.2f} "
             f"{dst['triangles']:9d} {conv['triangles']:9d} {dst['rss_mb']:7.0f} {conv['rss_mb']:7.0f}",
             flush=True,
         )
         print(f"{'':32}   DST stages: {dst['stages']}", flush=True)
+    print()
+    head = f"{'part':32} {'DST s':>7} {'report s':>9} {'report/DST':>10} {'reference s':>11} {'baselines s':>11} {'MB':>6}"
+    print(head)
+    print("-" * len(head))
+    for name, dst in reports:
+        print(
+            f"{name[:32]:32} {dst['seconds']:7.2f} {dst['report_seconds']:9.2f} "
+            f"{dst['report_seconds'] / dst['seconds']:10.2f} {dst['reference_seconds']:11.2f} "
+            f"{dst['baseline_seconds']:11.2f} {dst['report_rss_mb']:6.0f}"
+        )
 
 
 if __name__ == "__main__":

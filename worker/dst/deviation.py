@@ -207,13 +207,14 @@ def loop_successors(loops: list[list[np.ndarray]]) -> np.ndarray:
 def span_max(f0: np.ndarray, fm: np.ndarray, f1: np.ndarray, cap: float) -> np.ndarray:
     """Max over each span of the parabola through its values at t = 0, 1/2, 1 (a smooth distance
     function peaks between samples), at most ``cap`` above the largest sample."""
-    a = 2.0 * (f0 + f1 - 2.0 * fm)
-    b = f1 - f0 - a
     sampled = np.maximum(np.maximum(f0, f1), fm)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore"):  # inf where a plane has no cut: stays inf
+        a = 2.0 * (f0 + f1 - 2.0 * fm)
+        b = f1 - f0 - a
         t = np.where(a < 0, -b / (2.0 * a), -1.0)
         peak = np.where((t > 0) & (t < 1), f0 - b * b / (4.0 * a), sampled)
-    return np.minimum(np.maximum(sampled, peak), sampled + cap)
+        out = np.minimum(np.maximum(sampled, peak), sampled + cap)
+    return np.where(np.isfinite(sampled), out, sampled)
 
 
 def segment_lengths_per_plane(seg: np.ndarray, seg_plane: np.ndarray, n_planes: int) -> np.ndarray:
