@@ -214,6 +214,106 @@ def _summary_table(report) -> str:
     return "\n".join(lines)
 
 
+def _add_service_parsers(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "serve",
+        help="run the REST service (API and workers)",
+        description="Start the API and, unless --no-worker, a worker with its job processes. By default "
+        "everything is embedded: an SQLite broker and job store and artifacts under ./dst-data "
+        "(DST_DATA_DIR). Settings: DST_* environment variables (see the README).",
+    )
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
+    p.add_argument("--port", type=int, default=8000, help="port (default 8000)")
+    p.add_argument(
+        "--workers", type=int, default=None, help="jobs run at once on this machine (default: half the cores)"
+    )
+    p.add_argument("--no-worker", action="store_true", help="API only (workers run elsewhere: `dst worker`)")
+    p.set_defaults(func=_cmd_serve)
+    w = sub.add_parser(
+        "worker",
+        help="run a worker only (scale-out)",
+        description="Take jobs from the broker (DST_BROKER_URL) and run each in a killable process.",
+    )
+    w.add_argument("--concurrency", type=int, default=None, help="jobs at once (default: half the cores)")
+    w.set_defaults(func=_cmd_worker)
+
+
+def _default_concurrency() -> int:
+    return max(1, (os.cpu_count() or 2) // 2)
+
+
+def _settings_or_exit():
+    from pydantic import ValidationError  # noqa: PLC0415
+
+    from worker.settings import get_settings  # noqa: PLC0415
+
+    try:
+        settings = get_settings()
+    except ValidationError as exc:
+        msgs = "; ".join(str(e["msg"]).removeprefix("Value error, ") for e in exc.errors())
+        raise _UserError(f"invalid settings: {msgs}") from None
+    settings.ensure_dirs()
+    return settings
+
+
+def _worker_argv(concurrency: int, queue: str) -> list[str]:
+    import socket  # noqa: PLC0415
+
+    return [
+        "worker",
+        "--pool=threads",  # each job runs in its own spawned process; the pool only supervises
+        f"--concurrency={concurrency}",
+        f"--queues={queue}",
+        f"--hostname=dst-{os.getpid()}@{socket.gethostname()}",
+        "--without-gossip",
+        "--without-mingle",
+        "--loglevel=INFO",
+    ]
+
+
+def _cmd_worker(args: argparse.Namespace) -> int:
+    settings = _settings_or_exit()
+    from worker.queue import app  # noqa: PLC0415
+
+    app.worker_main(_worker_argv(args.concurrency or _default_concurrency(), settings.queue))
+    return 0
+
+
+def _cmd_serve(args: argparse.Namespace) -> int:
+    import signal  # noqa: PLC0415
+    import subprocess  # noqa: PLC0415
+
+    import uvicorn  # noqa: PLC0415
+
+    settings = _settings_or_exit()
+    worker = None
+    if not args.no_worker:
+        concurrency = args.workers or _default_concurrency()
+        worker = subprocess.Popen(
+            [sys.executable, "-m", "worker.cli", "worker", f"--concurrency={concurrency}"],
+            start_new_session=False,
+        )
+    # Jobs left running by a service that was killed: re-run or fail them before serving.
+    from worker.queue import enqueue, store  # noqa: PLC0415
+    from worker.recovery import recover  # noqa: PLC0415
+
+    for job_id, action in recover(store(), settings, enqueue):
+        print(f"dst: job {job_id} was interrupted: {action}", file=sys.stderr)
+
+    try:
+        uvicorn.run("app.main:app", host=args.host, port=args.port, log_level="info", timeout_graceful_shutdown=5)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        if worker is not None and worker.poll() is None:
+            worker.send_signal(signal.SIGTERM)
+            try:
+                worker.wait(20)
+            except subprocess.TimeoutExpired:
+                worker.kill()
+    return 0
+
+
 class _UserError(Exception):
     code = "invalid_input"
 
@@ -224,6 +324,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     _add_slice_parser(sub)
     _add_report_parser(sub)
+    _add_service_parsers(sub)
     return parser
 
 

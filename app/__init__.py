@@ -1,0 +1,1 @@
+"""dst-service HTTP API (FastAPI). Imports no OCCT: the geometry runs in the workers."""

@@ -1,0 +1,58 @@
+"""One job, as run inside the sandbox process: the DST mesh and its deviation report, as files."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+Progress = Callable[[str, float], None]
+
+
+def run_job(
+    job_dir: Path, input_path: Path, params: dict[str, Any], file_name: str, progress: Progress
+) -> dict[str, Any]:
+    """Build ``mesh.stl``, ``report.json``, ``report.html``, ``plot.svg`` and ``plot.png`` in ``job_dir``.
+
+    Returns a short summary for the job record. Raises the core's ``DstError`` subclasses on bad input.
+    """
+    from worker.dst.params import SliceParams
+    from worker.dst.pipeline import slice_step
+    from worker.dst.render import write_html, write_json, write_plot
+    from worker.dst.report import build_report, parse_baselines
+
+    values = dict(params)
+    baselines = parse_baselines(values.pop("baselines", None))
+    p = SliceParams.parse(**values)
+    mesh = slice_step(input_path, p, progress=lambda s, f: progress(s, 0.55 * f))
+    mesh.write_stl(job_dir / "mesh.stl")
+    result: dict[str, Any] = {
+        "triangles": len(mesh.triangles),
+        "vertices": len(mesh.vertices),
+        "planes": len(mesh.planes),
+        "height_mm": float(mesh.stats["height_mm"]),
+        "dst_seconds": mesh.stats["timings_s"]["total"],
+    }
+    progress("deviation report", 0.55)
+    report = build_report(
+        mesh.part,
+        p,
+        file_name=file_name,
+        dst=mesh,
+        baselines=baselines,
+        progress=lambda s, f: progress(f"report: {s}", 0.55 + 0.4 * f),
+    )
+    write_json(report, job_dir / "report.json")
+    progress("plots", 0.96)
+    write_html(report, job_dir / "report.html")
+    write_plot(report, job_dir / "plot.svg")
+    write_plot(report, job_dir / "plot.png")
+    dst = report.meshes[0].summary
+    result.update(
+        {
+            "max_vertex_dev": dst.max_vertex_dev,
+            "max_chord_dev": dst.max_chord_dev,
+            "warnings": report.warnings,
+        }
+    )
+    return result

@@ -1,0 +1,182 @@
+"""Run one job in a killable child process, with a wall-clock and a memory limit.
+
+OCCT holds the GIL and cannot be interrupted by a signal or a thread: the only reliable stop is to
+kill the process it runs in. The supervisor (a thread of the Celery worker) claims the job, starts a
+fresh *spawned* child (never a fork of a process that ran OCCT), relays its progress to the job
+store, beats the job's heartbeat, and kills the child on timeout or cancellation. A child that dies
+(segfault, OOM kill) fails the job with ``worker_crashed``; the worker carries on.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import multiprocessing as mp
+import os
+import resource
+import signal
+import time
+import traceback
+from pathlib import Path
+from typing import Any
+
+from worker.settings import Settings
+from worker.storage import ArtifactStore
+from worker.store import JobStore, this_worker_name
+
+_PROGRESS_EVERY_S = 0.25
+
+
+def _child(conn, job_dir: str, input_path: str, params: dict, file_name: str, memory_mb: int) -> None:
+    """The sandboxed process: limits, quiet OCCT, the job, one final message."""
+    _die_with_parent()
+    resource.setrlimit(resource.RLIMIT_AS, (memory_mb << 20, memory_mb << 20))
+    log = os.open(os.path.join(job_dir, "occt.log"), os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+    os.dup2(log, 1)  # OCCT prints banners on the C++ stdout/stderr
+    os.dup2(log, 2)
+    try:
+        from worker.dst.errors import DstError
+        from worker.job import run_job
+
+        def progress(stage: str, frac: float) -> None:
+            conn.send(("progress", stage, float(frac)))
+
+        result = run_job(Path(job_dir), Path(input_path), params, file_name, progress)
+        conn.send(("done", result))
+    except DstError as exc:
+        conn.send(("error", exc.code, str(exc)))
+    except MemoryError:
+        conn.send(("error", "resource_limit", f"the job needed more than its {memory_mb} MB memory limit"))
+    except Exception as exc:  # a bug in the core: report it, with the traceback in occt.log
+        traceback.print_exc()
+        conn.send(("error", "internal_error", f"{type(exc).__name__}: {exc}"))
+    finally:
+        conn.close()
+
+
+def _die_with_parent() -> None:
+    """Linux: be killed when the supervising worker dies, however it dies (no orphaned OCCT runs)."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+    except OSError:
+        return
+    pr_set_pdeathsig = 1
+    libc.prctl(pr_set_pdeathsig, signal.SIGKILL)
+    if os.getppid() == 1:  # the parent died before prctl took effect
+        os._exit(1)
+
+
+def run_sandboxed(job_id: str, store: JobStore, artifacts: ArtifactStore, settings: Settings) -> str:
+    """Run the job if it is still queued; return its final status (or 'skipped')."""
+    job = store.get(job_id)
+    if job is None or job.status != "queued" or job.cancel_requested:
+        return "skipped"
+    now = time.time()
+    claimed = store.update(
+        job_id,
+        only_if_status=("queued",),
+        status="running",
+        stage="starting",
+        started_at=now,
+        heartbeat_at=now,
+        attempts=job.attempts + 1,
+        worker=this_worker_name(),
+    )
+    if not claimed:
+        return "skipped"  # another worker took it, or it was cancelled meanwhile
+    job_dir = artifacts.job_dir(job_id)
+    ctx = mp.get_context("spawn")
+    parent, child = ctx.Pipe(duplex=False)
+    proc = ctx.Process(
+        target=_child,
+        args=(child, str(job_dir), str(artifacts.input_path(job_id)), job.params, job.file_name, settings.job_memory_mb),
+        name=f"dst-job-{job_id[:8]}",
+        daemon=True,
+    )
+    proc.start()
+    child.close()
+    store.update(job_id, sandbox_pid=proc.pid)
+    deadline = time.monotonic() + settings.job_timeout_s
+    last_beat = last_progress = last_cancel_check = 0.0
+    pending: tuple[str, float] | None = None
+    outcome: tuple | None = None
+    try:
+        while True:
+            if parent.poll(0.2):
+                try:
+                    msg = parent.recv()
+                except EOFError:
+                    msg = None
+                if msg is None:
+                    proc.join(5)
+                    break
+                if msg[0] == "progress":
+                    pending = (msg[1], msg[2])
+                else:
+                    outcome = msg
+                    break
+            elif not proc.is_alive():
+                break
+            t = time.monotonic()
+            if pending and t - last_progress >= _PROGRESS_EVERY_S:
+                store.update(job_id, only_if_status=("running",), stage=pending[0][:200], progress=pending[1],
+                             heartbeat_at=time.time())
+                pending, last_progress, last_beat = None, t, t
+            if t - last_beat >= settings.heartbeat_s:
+                store.update(job_id, heartbeat_at=time.time())
+                last_beat = t
+            if t - last_cancel_check >= 0.5:
+                last_cancel_check = t
+                current = store.get(job_id)
+                if current is None or current.cancel_requested or current.status != "running":
+                    _kill(proc)
+                    return "cancelled"
+            if t > deadline:
+                _kill(proc)
+                return _finish(store, artifacts, job_id, "failed", "timeout",
+                               f"the job ran longer than its {settings.job_timeout_s:g} s limit and was stopped")
+    finally:
+        parent.close()
+    proc.join(10)
+    if outcome is None:
+        code = proc.exitcode
+        if code is not None and code < 0:
+            name = signal.Signals(-code).name
+            reason = "was killed by the system (out of memory?)" if name == "SIGKILL" else f"crashed ({name})"
+        else:
+            reason = f"exited unexpectedly (status {code})"
+        return _finish(store, artifacts, job_id, "failed", "worker_crashed", f"the job's process {reason}")
+    if outcome[0] == "error":
+        return _finish(store, artifacts, job_id, "failed", outcome[1], outcome[2])
+    return _finish(store, artifacts, job_id, "succeeded", None, None, result=outcome[1])
+
+
+def _finish(
+    store: JobStore,
+    artifacts: ArtifactStore,
+    job_id: str,
+    status: str,
+    code: str | None,
+    message: str | None,
+    *,
+    result: dict[str, Any] | None = None,
+) -> str:
+    values: dict[str, Any] = {
+        "status": status,
+        "finished_at": time.time(),
+        "error_code": code,
+        "error_message": message,
+        "sandbox_pid": None,
+    }
+    if status == "succeeded":
+        values.update(progress=1.0, stage="done", result=result or {}, artifacts=artifacts.manifest(job_id))
+    else:
+        values.update(stage=status)
+    store.update(job_id, only_if_status=("running",), **values)
+    final = store.get(job_id)
+    return final.status if final else "deleted"
+
+
+def _kill(proc) -> None:
+    if proc.is_alive():
+        proc.kill()
+    proc.join(10)
