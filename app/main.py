@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Annotated
 
 from fastapi import FastAPI, File, Form, HTTPException, Query, Request, UploadFile
+from fastapi import Path as PathParam
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response, StreamingResponse
 from starlette.concurrency import run_in_threadpool
@@ -36,13 +37,23 @@ API = "/v1"
 SNIFF_BYTES = 256
 P21_MAGIC = b"ISO-10303-21"
 DEFAULT_BASELINES = ("occt_fast", "occt_high_quality", "prusaslicer")
-BASELINE_NAMES = ("occt_fast", "occt_high_quality", "occt_reference", "prusaslicer", "bambu_orca", "prusaslicer_high")
+BASELINE_NAMES = (
+    "occt_fast",
+    "occt_high_quality",
+    "occt_reference",
+    "prusaslicer",
+    "bambu_orca",
+    "prusaslicer_high",
+)
 INPUT_ERRORS = {"step_read_error", "empty_geometry", "not_a_solid", "invalid_parameters", "resource_limit"}
 
 ERROR_RESPONSES = {
     404: {"model": S.ErrorResponse, "description": "Unknown job (code job_not_found)."},
     409: {"model": S.ErrorResponse, "description": "The artifact does not exist yet (code mesh_not_ready)."},
-    413: {"model": S.ErrorResponse, "description": "Upload over the configured limit (code upload_too_large)."},
+    413: {
+        "model": S.ErrorResponse,
+        "description": "Upload over the configured limit (code upload_too_large).",
+    },
     422: {"model": S.ErrorResponse, "description": "Not a STEP file (not_step) or parameters out of range."},
     503: {"model": S.ErrorResponse, "description": "The queue is unreachable (code broker_unavailable)."},
 }
@@ -73,7 +84,7 @@ app = FastAPI(
     summary="Slicing-aware meshes of STEP parts: Direct Slicing Tessellation with a deviation report.",
     description="Upload a STEP part with the slicer's layer settings; a worker builds the DST mesh, whose "
     "vertex rings lie exactly on the slicer's planes, and a report comparing it and conventional meshes "
-    "with the exact CAD geometry, layer by layer. Errors are JSON: {\"error\": {\"code\", \"message\"}}.",
+    'with the exact CAD geometry, layer by layer. Errors are JSON: {"error": {"code", "message"}}.',
     lifespan=_lifespan,
 )
 
@@ -111,7 +122,11 @@ async def _upload_limit(request: Request, call_next):
         length = request.headers.get("content-length")
         limit = get_settings().max_upload_mb * 1e6
         if length and length.isdigit() and int(length) > limit + 1_000_000:  # form overhead allowed
-            return _error(413, "upload_too_large", f"the upload is {int(length) / 1e6:.1f} MB; the limit is {limit / 1e6:g} MB")
+            return _error(
+                413,
+                "upload_too_large",
+                f"the upload is {int(length) / 1e6:.1f} MB; the limit is {limit / 1e6:g} MB",
+            )
     return await call_next(request)
 
 
@@ -167,7 +182,7 @@ def job_out(job: Job, *, reused: bool = False) -> S.JobOut:
     )
 
 
-def _get_job(request: Request, job_id: str) -> Job:
+def _get_job(request: Request, job_id: JobId) -> Job:
     job = _store(request).get(job_id) if re.fullmatch(r"[0-9a-f]{32}", job_id) else None
     if job is None:
         raise ApiError(404, "job_not_found", f"no job {job_id}")
@@ -176,7 +191,7 @@ def _get_job(request: Request, job_id: str) -> Job:
 
 def sanitise_name(name: str | None) -> str:
     base = os.path.basename((name or "").replace("\\", "/"))
-    base = re.sub(r"[^A-Za-z0-9._ -]+", "_", base).strip(" .") or "part.step"
+    base = re.sub(r"[^A-Za-z0-9._-]+", "_", base).strip("._") or "part.step"
     return base[:120]
 
 
@@ -194,13 +209,19 @@ def _parse_params(
         )
     except InvalidParameters as exc:
         raise ApiError(422, "invalid_parameters", str(exc)) from None
-    names = DEFAULT_BASELINES if baselines is None else tuple(
-        dict.fromkeys(b.strip() for b in baselines.split(",") if b.strip() and b.strip() != "none")
+    names = (
+        DEFAULT_BASELINES
+        if baselines is None
+        else tuple(
+            dict.fromkeys(b.strip() for b in baselines.split(",") if b.strip() and b.strip() != "none")
+        )
     )
     unknown = [b for b in names if b not in BASELINE_NAMES]
     if unknown:
         raise ApiError(
-            422, "invalid_parameters", f"unknown baseline {', '.join(unknown)}; choose from {', '.join(BASELINE_NAMES)} or 'none'"
+            422,
+            "invalid_parameters",
+            f"unknown baseline {', '.join(unknown)}; choose from {', '.join(BASELINE_NAMES)} or 'none'",
         )
     out = p.model_dump()
     out["baselines"] = list(names)
@@ -223,7 +244,9 @@ async def _receive_upload(request: Request, file: UploadFile) -> tuple[Path, int
             while chunk := await file.read(1 << 20):
                 size += len(chunk)
                 if size > limit:
-                    raise ApiError(413, "upload_too_large", f"the upload is over the {limit / 1e6:g} MB limit")
+                    raise ApiError(
+                        413, "upload_too_large", f"the upload is over the {limit / 1e6:g} MB limit"
+                    )
                 if len(head) < SNIFF_BYTES:
                     head += chunk[: SNIFF_BYTES - len(head)]
                 h.update(chunk)
@@ -238,42 +261,70 @@ async def _receive_upload(request: Request, file: UploadFile) -> tuple[Path, int
     return path, size, h.hexdigest()
 
 
-def _submit(request: Request, tmp: Path, size: int, sha: str, file_name: str, params: dict) -> tuple[Job, bool]:
+def _submit(
+    request: Request, tmp: Path, size: int, sha: str, file_name: str, params: dict
+) -> tuple[Job, bool]:
     """Create the job (or reuse one with the same inputs) and queue it. Returns (job, reused)."""
     store, artifacts = _store(request), _artifacts(request)
     key = hashlib.sha256((sha + json.dumps(params, sort_keys=True)).encode()).hexdigest()
     try:
         old = store.find_reusable(key)
-        if old is not None and (old.status != "succeeded" or all(
-            artifacts.path(old.id, a["file"]).is_file() for a in old.artifacts.values()
-        )):
+        if old is not None and (
+            old.status != "succeeded"
+            or all(artifacts.path(old.id, a["file"]).is_file() for a in old.artifacts.values())
+        ):
             return old, True
-        job = store.create(file_name=file_name, file_size=size, file_sha256=sha, dedupe_key=key, params=params)
+        job = store.create(
+            file_name=file_name, file_size=size, file_sha256=sha, dedupe_key=key, params=params
+        )
         artifacts.save_input(job.id, tmp)
     finally:
         tmp.unlink(missing_ok=True)
     try:
         request.app.state.enqueue(job.id)
     except Exception as exc:  # any broker failure: the job must not stay queued with no message
-        store.update(job.id, status="failed", stage="failed", error_code="broker_unavailable",
-                     error_message=f"could not queue the job: {exc}", finished_at=time.time())
+        store.update(
+            job.id,
+            status="failed",
+            stage="failed",
+            error_code="broker_unavailable",
+            error_message=f"could not queue the job: {exc}",
+            finished_at=time.time(),
+        )
         raise ApiError(503, "broker_unavailable", f"the job queue is unreachable: {exc}") from None
     return store.get(job.id) or job, False
 
 
+JobId = Annotated[str, PathParam(max_length=64, description="Job id (32 hex digits).")]
+
 # --- form fields shared by the two upload endpoints -------------------------------------------------
 FileField = Annotated[UploadFile, File(description="The STEP part (AP203/AP214/AP242, ISO 10303-21).")]
 LayerField = Annotated[float | None, Form(ge=0.01, le=2.0, description="Layer height h, mm (default 0.2).")]
-FirstField = Annotated[float | None, Form(ge=0.01, le=2.0, description="First-layer height h0, mm (default h).")]
-ModeField = Annotated[
-    str | None, Form(pattern="^(middle|inclusive|exclusive)$", description="Plane placement: middle (default), inclusive, exclusive.")
+FirstField = Annotated[
+    float | None, Form(ge=0.01, le=2.0, description="First-layer height h0, mm (default h).")
 ]
-SegField = Annotated[float | None, Form(ge=0.01, le=50.0, description="Longest ring segment, mm (default 0.8).")]
-ChordField = Annotated[float | None, Form(ge=0.0001, le=1.0, description="Largest chord error, mm (default 0.025).")]
-SlicerField = Annotated[str | None, Form(pattern="^(cura|prusa)$", description="Ring heights as cura or prusa computes planes.")]
+ModeField = Annotated[
+    str | None,
+    Form(
+        pattern="^(middle|inclusive|exclusive)$",
+        description="Plane placement: middle (default), inclusive, exclusive.",
+    ),
+]
+SegField = Annotated[
+    float | None, Form(ge=0.01, le=50.0, description="Longest ring segment, mm (default 0.8).")
+]
+ChordField = Annotated[
+    float | None, Form(ge=0.0001, le=1.0, description="Largest chord error, mm (default 0.025).")
+]
+SlicerField = Annotated[
+    str | None, Form(pattern="^(cura|prusa)$", description="Ring heights as cura or prusa computes planes.")
+]
 BaselinesField = Annotated[
     str | None,
-    Form(max_length=200, description="Comma-separated report baselines or 'none' (default occt_fast,occt_high_quality,prusaslicer)."),
+    Form(
+        max_length=200,
+        description="Comma-separated report baselines or 'none' (default occt_fast,occt_high_quality,prusaslicer).",
+    ),
 ]
 
 
@@ -289,8 +340,13 @@ def health() -> S.Health:
     return S.Health()
 
 
-@app.get("/ready", response_model=S.Readiness, operation_id="readiness", tags=["service"],
-         responses={503: {"model": S.Readiness, "description": "Not ready."}})
+@app.get(
+    "/ready",
+    response_model=S.Readiness,
+    operation_id="readiness",
+    tags=["service"],
+    responses={503: {"model": S.Readiness, "description": "Not ready."}},
+)
 def ready(request: Request) -> JSONResponse:
     """Readiness: the job store and the broker answer and at least one worker reported recently."""
     detail = []
@@ -312,14 +368,27 @@ def ready(request: Request) -> JSONResponse:
         detail.append(f"broker: {exc}")
     if not n_workers:
         detail.append("no worker has reported in the last 15 s")
-    body = S.Readiness(ready=store_ok and broker_ok and n_workers > 0, store=store_ok, broker=broker_ok,
-                       workers=n_workers, detail=detail)
+    body = S.Readiness(
+        ready=store_ok and broker_ok and n_workers > 0,
+        store=store_ok,
+        broker=broker_ok,
+        workers=n_workers,
+        detail=detail,
+    )
     return JSONResponse(body.model_dump(), status_code=200 if body.ready else 503)
 
 
-@app.post(f"{API}/jobs", status_code=201, response_model=S.JobOut, operation_id="create_job", tags=["jobs"],
-          responses={200: {"model": S.JobOut, "description": "An earlier job with the same file and parameters."},
-                     **{k: ERROR_RESPONSES[k] for k in (413, 422, 503)}})
+@app.post(
+    f"{API}/jobs",
+    status_code=201,
+    response_model=S.JobOut,
+    operation_id="create_job",
+    tags=["jobs"],
+    responses={
+        200: {"model": S.JobOut, "description": "An earlier job with the same file and parameters."},
+        **{k: ERROR_RESPONSES[k] for k in (413, 422, 503)},
+    },
+)
 async def create_job(
     request: Request,
     file: FileField,
@@ -333,11 +402,17 @@ async def create_job(
 ) -> JSONResponse:
     """Upload a STEP part and queue its DST job. The same file with the same parameters reuses the
     earlier job (200) instead of creating one (201)."""
-    params = _parse_params(layer_height, first_layer_height, mode, segment_length, chord_error, target_slicer, baselines)
+    params = _parse_params(
+        layer_height, first_layer_height, mode, segment_length, chord_error, target_slicer, baselines
+    )
     tmp, size, sha = await _receive_upload(request, file)
-    job, reused = await run_in_threadpool(_submit, request, tmp, size, sha, sanitise_name(file.filename), params)
+    job, reused = await run_in_threadpool(
+        _submit, request, tmp, size, sha, sanitise_name(file.filename), params
+    )
     body = job_out(job, reused=reused).model_dump(mode="json")
-    return JSONResponse(body, status_code=200 if reused else 201, headers={"Location": f"{API}/jobs/{job.id}"})
+    return JSONResponse(
+        body, status_code=200 if reused else 201, headers={"Location": f"{API}/jobs/{job.id}"}
+    )
 
 
 @app.get(f"{API}/jobs", response_model=S.JobList, operation_id="list_jobs", tags=["jobs"])
@@ -355,17 +430,28 @@ def list_jobs(
     return S.JobList(jobs=[job_out(j) for j in jobs], total=total, limit=limit, offset=offset, next=nxt)
 
 
-@app.get(f"{API}/jobs/{{job_id}}", response_model=S.JobOut, operation_id="get_job", tags=["jobs"],
-         responses={404: ERROR_RESPONSES[404]})
-def get_job(request: Request, job_id: str) -> S.JobOut:
+@app.get(
+    f"{API}/jobs/{{job_id}}",
+    response_model=S.JobOut,
+    operation_id="get_job",
+    tags=["jobs"],
+    responses={404: ERROR_RESPONSES[404]},
+)
+def get_job(request: Request, job_id: JobId) -> S.JobOut:
     """The job's status, progress, parameters, error and artifact links."""
     return job_out(_get_job(request, job_id))
 
 
-@app.get(f"{API}/jobs/{{job_id}}/events", operation_id="job_events", tags=["jobs"],
-         responses={200: {"content": {"text/event-stream": {}}, "description": "Server-sent events."},
-                    404: ERROR_RESPONSES[404]})
-async def job_events(request: Request, job_id: str) -> StreamingResponse:
+@app.get(
+    f"{API}/jobs/{{job_id}}/events",
+    operation_id="job_events",
+    tags=["jobs"],
+    responses={
+        200: {"content": {"text/event-stream": {}}, "description": "Server-sent events."},
+        404: ERROR_RESPONSES[404],
+    },
+)
+async def job_events(request: Request, job_id: JobId) -> StreamingResponse:
     """Progress as server-sent events (`event: progress`, data = the job JSON) until the job ends
     (`event: end`)."""
     job = await run_in_threadpool(_get_job, request, job_id)
@@ -376,7 +462,7 @@ async def job_events(request: Request, job_id: str) -> StreamingResponse:
         current: Job | None = job
         while True:
             if current is None:
-                yield b"event: end\ndata: {\"status\": \"deleted\"}\n\n"
+                yield b'event: end\ndata: {"status": "deleted"}\n\n'
                 return
             state = (current.status, round(current.progress, 3), current.stage)
             if state != last:
@@ -399,7 +485,9 @@ async def job_events(request: Request, job_id: str) -> StreamingResponse:
     return StreamingResponse(stream(), media_type="text/event-stream", headers={"Cache-Control": "no-cache"})
 
 
-def _artifact_response(request: Request, job_id: str, name: str, download_name: str | None = None) -> Response:
+def _artifact_response(
+    request: Request, job_id: str, name: str, download_name: str | None = None
+) -> Response:
     job = _get_job(request, job_id)
     if job.status != "succeeded":
         detail = f"the job is {job.status}"
@@ -426,19 +514,30 @@ def _stl_name(job: Job) -> str:
     return f"{Path(job.file_name).stem or 'part'}.stl"
 
 
-@app.get(f"{API}/jobs/{{job_id}}/mesh", operation_id="get_mesh", tags=["artifacts"],
-         responses={200: {"content": {"model/stl": {}}, "description": "Binary STL (ranges supported)."},
-                    404: ERROR_RESPONSES[404], 409: ERROR_RESPONSES[409]})
+@app.get(
+    f"{API}/jobs/{{job_id}}/mesh",
+    operation_id="get_mesh",
+    tags=["artifacts"],
+    responses={
+        200: {"content": {"model/stl": {}}, "description": "Binary STL (ranges supported)."},
+        404: ERROR_RESPONSES[404],
+        409: ERROR_RESPONSES[409],
+    },
+)
 async def get_mesh(
     request: Request,
-    job_id: str,
-    format: Annotated[str, Query(pattern="^(stl|ascii)$", description="stl (binary, default) or ascii.")] = "stl",
+    job_id: JobId,
+    format: Annotated[
+        str, Query(pattern="^(stl|ascii)$", description="stl (binary, default) or ascii.")
+    ] = "stl",
 ) -> Response:
     """The DST mesh, streamed from storage with Content-Length, ETag and range requests."""
     job = await run_in_threadpool(_get_job, request, job_id)
     if format == "ascii" and job.status == "succeeded":
         path = await run_in_threadpool(_ascii_copy, request, job)
-        return FileResponse(path, media_type="model/stl", filename=_stl_name(job).replace(".stl", "_ascii.stl"))
+        return FileResponse(
+            path, media_type="model/stl", filename=_stl_name(job).replace(".stl", "_ascii.stl")
+        )
     return await run_in_threadpool(_artifact_response, request, job_id, "mesh", _stl_name(job))
 
 
@@ -467,7 +566,7 @@ for _name, _suffix, _summary in (
 ):
 
     def _make(name: str):
-        def endpoint(request: Request, job_id: str) -> Response:
+        def endpoint(request: Request, job_id: JobId) -> Response:
             return _artifact_response(request, job_id, name)
 
         return endpoint
@@ -479,27 +578,44 @@ for _name, _suffix, _summary in (
         operation_id=f"get_{_name}",
         tags=["artifacts"],
         summary=_summary,
-        responses={200: {"content": {ARTIFACTS[_name][1].split(";")[0]: {}}}, 404: ERROR_RESPONSES[404], 409: ERROR_RESPONSES[409]},
+        responses={
+            200: {"content": {ARTIFACTS[_name][1].split(";")[0]: {}}},
+            404: ERROR_RESPONSES[404],
+            409: ERROR_RESPONSES[409],
+        },
     )
 
 
-@app.delete(f"{API}/jobs/{{job_id}}", status_code=204, operation_id="delete_job", tags=["jobs"],
-            responses={404: ERROR_RESPONSES[404]})
-def delete_job(request: Request, job_id: str) -> Response:
+@app.delete(
+    f"{API}/jobs/{{job_id}}",
+    status_code=204,
+    operation_id="delete_job",
+    tags=["jobs"],
+    responses={404: ERROR_RESPONSES[404]},
+)
+def delete_job(request: Request, job_id: JobId) -> Response:
     """Cancel the job if it is queued or running (its process is killed) and remove it and its files."""
     job = _get_job(request, job_id)
     store = _store(request)
     if not job.terminal:
-        store.update(job.id, cancel_requested=True, status="cancelled", stage="cancelled", finished_at=time.time())
+        store.update(
+            job.id, cancel_requested=True, status="cancelled", stage="cancelled", finished_at=time.time()
+        )
     store.delete(job.id)
     _artifacts(request).remove(job.id)
     return Response(status_code=204)
 
 
-@app.post(f"{API}/slice", operation_id="slice", tags=["jobs"],
-          responses={200: {"content": {"model/stl": {}}, "description": "The DST mesh (binary STL)."},
-                     504: {"model": S.ErrorResponse, "description": "The job did not finish in time (code wait_timeout)."},
-                     **{k: ERROR_RESPONSES[k] for k in (413, 422, 503)}})
+@app.post(
+    f"{API}/slice",
+    operation_id="slice",
+    tags=["jobs"],
+    responses={
+        200: {"content": {"model/stl": {}}, "description": "The DST mesh (binary STL)."},
+        504: {"model": S.ErrorResponse, "description": "The job did not finish in time (code wait_timeout)."},
+        **{k: ERROR_RESPONSES[k] for k in (413, 422, 503)},
+    },
+)
 async def slice_now(
     request: Request,
     file: FileField,
@@ -513,15 +629,26 @@ async def slice_now(
 ) -> Response:
     """One call for curl: upload, wait for the job, and get the STL streamed back. The job id is in
     the X-DST-Job header (its report stays available under /v1/jobs/{id}/report)."""
-    params = _parse_params(layer_height, first_layer_height, mode, segment_length, chord_error, target_slicer,
-                           baselines if baselines is not None else "none")
+    params = _parse_params(
+        layer_height,
+        first_layer_height,
+        mode,
+        segment_length,
+        chord_error,
+        target_slicer,
+        baselines if baselines is not None else "none",
+    )
     tmp, size, sha = await _receive_upload(request, file)
     job, _ = await run_in_threadpool(_submit, request, tmp, size, sha, sanitise_name(file.filename), params)
     deadline = time.monotonic() + _settings(request).slice_wait_s
     while not job.terminal:
         if time.monotonic() > deadline:
-            raise ApiError(504, "wait_timeout", f"job {job.id} is still {job.status}; poll {API}/jobs/{job.id}",
-                           headers={"X-DST-Job": job.id, "Location": f"{API}/jobs/{job.id}"})
+            raise ApiError(
+                504,
+                "wait_timeout",
+                f"job {job.id} is still {job.status}; poll {API}/jobs/{job.id}",
+                headers={"X-DST-Job": job.id, "Location": f"{API}/jobs/{job.id}"},
+            )
         await asyncio.sleep(0.2)
         current = await run_in_threadpool(_store(request).get, job.id)
         if current is None:
@@ -530,7 +657,9 @@ async def slice_now(
     if job.status != "succeeded":
         code = job.error_code or job.status
         status = 422 if code in INPUT_ERRORS else 504 if code == "timeout" else 500
-        raise ApiError(status, code, job.error_message or f"the job was {job.status}", headers={"X-DST-Job": job.id})
+        raise ApiError(
+            status, code, job.error_message or f"the job was {job.status}", headers={"X-DST-Job": job.id}
+        )
     response = await run_in_threadpool(_artifact_response, request, job.id, "mesh", _stl_name(job))
     response.headers["X-DST-Job"] = job.id
     response.headers["Location"] = f"{API}/jobs/{job.id}"

@@ -22,7 +22,7 @@ class ErrorInfo(BaseModel):
 
 
 class ErrorResponse(BaseModel):
-    error: ErrorInfo
+    error: ErrorInfo = Field(description="The error.")
 
 
 class JobParams(BaseModel):
@@ -31,7 +31,9 @@ class JobParams(BaseModel):
     mode: SlicingMode = Field(description="Slicing tolerance (plane placement).")
     segment_length: float = Field(ge=0.01, le=50.0, description="Longest ring segment, mm.")
     chord_error: float = Field(ge=0.0001, le=1.0, description="Largest chord error, mm.")
-    target_slicer: TargetSlicer | None = Field(None, description="Ring heights as this slicer computes planes.")
+    target_slicer: TargetSlicer | None = Field(
+        None, description="Ring heights as this slicer computes planes."
+    )
     baselines: list[str] = Field(max_length=6, description="Conventional meshes the report compares with.")
 
 
@@ -40,9 +42,15 @@ class JobResult(BaseModel):
     vertices: int | None = Field(None, ge=0, description="Vertices of the DST mesh.")
     planes: int | None = Field(None, ge=0, description="Slicing planes (layers).")
     height_mm: float | None = Field(None, ge=0, description="Part height, mm.")
-    max_vertex_dev: float | None = Field(None, ge=0, description="DST: largest ring vertex distance from the exact section, mm.")
-    max_chord_dev: float | None = Field(None, ge=0, description="DST: largest contour distance from the exact section, mm.")
-    warnings: list[str] = Field(default_factory=list, max_length=10_000, description="Warnings a user must see.")
+    max_vertex_dev: float | None = Field(
+        None, ge=0, description="DST: largest ring vertex distance from the exact section, mm."
+    )
+    max_chord_dev: float | None = Field(
+        None, ge=0, description="DST: largest contour distance from the exact section, mm."
+    )
+    warnings: list[str] = Field(
+        default_factory=list, max_length=10_000, description="Warnings a user must see."
+    )
 
 
 class JobLinks(BaseModel):
@@ -57,37 +65,41 @@ class JobLinks(BaseModel):
 
 class JobOut(BaseModel):
     id: str = Field(max_length=32, description="Job id.")
-    status: JobStatus
+    status: JobStatus = Field(description="queued, running, succeeded, failed or cancelled.")
     progress: float = Field(ge=0.0, le=1.0, description="Fraction done.")
     stage: str = Field(max_length=200, description="What the job is doing now.")
-    created_at: datetime
-    started_at: datetime | None = None
-    finished_at: datetime | None = None
+    created_at: datetime = Field(description="When the job was submitted (UTC).")
+    started_at: datetime | None = Field(None, description="When its current run started (UTC).")
+    finished_at: datetime | None = Field(None, description="When it ended (UTC).")
     file_name: str = Field(max_length=255, description="The upload's sanitised file name.")
     file_size: int = Field(ge=0, description="Upload size, bytes.")
     file_sha256: str = Field(max_length=64, description="SHA-256 of the upload.")
-    params: JobParams
-    attempts: int = Field(ge=0, le=10, description="Runs started (a run interrupted by a lost worker is retried).")
-    reused: bool = Field(False, description="True when this response reuses an earlier job with the same inputs.")
+    params: JobParams = Field(description="The job's slicing parameters and report baselines.")
+    attempts: int = Field(
+        ge=0, le=10, description="Runs started (a run interrupted by a lost worker is retried)."
+    )
+    reused: bool = Field(
+        False, description="True when this response reuses an earlier job with the same inputs."
+    )
     error: ErrorInfo | None = Field(None, description="Why the job failed.")
     result: JobResult | None = Field(None, description="Summary of the finished job.")
-    links: JobLinks
+    links: JobLinks = Field(description="Where to find the job and its artifacts.")
 
 
 class JobList(BaseModel):
-    jobs: list[JobOut] = Field(max_length=100)
+    jobs: list[JobOut] = Field(max_length=100, description="This page's jobs, newest first.")
     total: int = Field(ge=0, description="Jobs matching the filter.")
-    limit: int = Field(ge=1, le=100)
-    offset: int = Field(ge=0)
+    limit: int = Field(ge=1, le=100, description="Page size asked for.")
+    offset: int = Field(ge=0, description="Jobs skipped.")
     next: str | None = Field(None, max_length=300, description="URL of the next page, if any.")
 
 
 class Health(BaseModel):
-    status: Literal["ok"] = "ok"
+    status: Literal["ok"] = Field("ok", description="Always ok when the API answers.")
 
 
 class Readiness(BaseModel):
-    ready: bool
+    ready: bool = Field(description="True when jobs can be accepted and run.")
     store: bool = Field(description="The job store answers.")
     broker: bool = Field(description="The broker accepts connections.")
     workers: int = Field(ge=0, description="Workers seen recently.")

@@ -238,6 +238,69 @@ def _add_service_parsers(sub: argparse._SubParsersAction) -> None:
     w.set_defaults(func=_cmd_worker)
 
 
+def _add_remote_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "remote",
+        help="slice on a running dst-service (HTTP)",
+        description="Upload a STEP file to a dst-service, wait for its job and download the DST mesh "
+        "(and, with --report/--html, its deviation report).",
+    )
+    p.add_argument("input", help="STEP file")
+    p.add_argument("-o", "--output", required=True, help="STL file to write")
+    p.add_argument(
+        "--server",
+        default=os.environ.get("DST_SERVER", "http://127.0.0.1:8000"),
+        help="service URL (default $DST_SERVER or http://127.0.0.1:8000)",
+    )
+    _add_slicing_options(p)
+    p.add_argument("--baselines", default=None, help="report baselines (comma-separated) or 'none'")
+    p.add_argument("--report", default=None, help="also download the report JSON")
+    p.add_argument("--html", default=None, help="also download the report page")
+    p.set_defaults(func=_cmd_remote)
+
+
+def _cmd_remote(args: argparse.Namespace) -> int:
+    import httpx  # noqa: PLC0415
+
+    from app.client import DstClient, DstError  # noqa: PLC0415
+
+    if not os.path.isfile(args.input):
+        raise _UserError(f"input file not found: {args.input}")
+    for path in (args.output, args.report, args.html):
+        _check_output(path)
+    params = {
+        "layer_height": args.layer_height,
+        "first_layer_height": args.first_layer_height,
+        "mode": args.mode,
+        "segment_length": args.segment_length,
+        "chord_error": args.chord_error,
+        "target_slicer": args.target_slicer,
+        "baselines": args.baselines,
+    }
+    try:
+        with DstClient(args.server) as c:
+            job = c.submit(args.input, **params)
+            print(f"job {job['id']} {'(reused)' if job['reused'] else ''}", file=sys.stderr)
+            for _event, state in c.events(job["id"]):
+                print(f"  {state['progress']:5.0%} {state['stage']}", file=sys.stderr)
+            job = c.wait(job["id"])
+            c.download_mesh(job["id"], args.output)
+            if args.report:
+                c.download(job["id"], "report", args.report)
+            if args.html:
+                c.download(job["id"], "report.html", args.html)
+    except DstError as exc:
+        print(f"dst: error [{exc.code}]: {exc.message}", file=sys.stderr)
+        return EXIT_INPUT if exc.status in (413, 422) or exc.status == 200 else EXIT_INTERNAL
+    except httpx.HTTPError as exc:
+        print(f"dst: error [unreachable]: cannot talk to {args.server}: {exc}", file=sys.stderr)
+        return EXIT_INTERNAL
+    for w in (job.get("result") or {}).get("warnings", []):
+        print(f"warning: {w}", file=sys.stderr)
+    print(f"wrote {args.output}", file=sys.stderr)
+    return 0
+
+
 def _default_concurrency() -> int:
     return max(1, (os.cpu_count() or 2) // 2)
 
@@ -301,7 +364,9 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         print(f"dst: job {job_id} was interrupted: {action}", file=sys.stderr)
 
     try:
-        uvicorn.run("app.main:app", host=args.host, port=args.port, log_level="info", timeout_graceful_shutdown=5)
+        uvicorn.run(
+            "app.main:app", host=args.host, port=args.port, log_level="info", timeout_graceful_shutdown=5
+        )
     except KeyboardInterrupt:
         pass
     finally:
@@ -325,6 +390,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_slice_parser(sub)
     _add_report_parser(sub)
     _add_service_parsers(sub)
+    _add_remote_parser(sub)
     return parser
 
 

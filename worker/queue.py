@@ -84,7 +84,9 @@ def _housekeeping(concurrency: int) -> None:
 @worker_ready.connect
 def _on_ready(sender=None, **_kw) -> None:
     concurrency = getattr(getattr(sender, "controller", None), "concurrency", None) or 1
-    threading.Thread(target=_housekeeping, args=(int(concurrency),), name="dst-housekeeping", daemon=True).start()
+    threading.Thread(
+        target=_housekeeping, args=(int(concurrency),), name="dst-housekeeping", daemon=True
+    ).start()
 
 
 @worker_shutdown.connect

@@ -88,7 +88,14 @@ def run_sandboxed(job_id: str, store: JobStore, artifacts: ArtifactStore, settin
     parent, child = ctx.Pipe(duplex=False)
     proc = ctx.Process(
         target=_child,
-        args=(child, str(job_dir), str(artifacts.input_path(job_id)), job.params, job.file_name, settings.job_memory_mb),
+        args=(
+            child,
+            str(job_dir),
+            str(artifacts.input_path(job_id)),
+            job.params,
+            job.file_name,
+            settings.job_memory_mb,
+        ),
         name=f"dst-job-{job_id[:8]}",
         daemon=True,
     )
@@ -118,8 +125,13 @@ def run_sandboxed(job_id: str, store: JobStore, artifacts: ArtifactStore, settin
                 break
             t = time.monotonic()
             if pending and t - last_progress >= _PROGRESS_EVERY_S:
-                store.update(job_id, only_if_status=("running",), stage=pending[0][:200], progress=pending[1],
-                             heartbeat_at=time.time())
+                store.update(
+                    job_id,
+                    only_if_status=("running",),
+                    stage=pending[0][:200],
+                    progress=pending[1],
+                    heartbeat_at=time.time(),
+                )
                 pending, last_progress, last_beat = None, t, t
             if t - last_beat >= settings.heartbeat_s:
                 store.update(job_id, heartbeat_at=time.time())
@@ -132,8 +144,14 @@ def run_sandboxed(job_id: str, store: JobStore, artifacts: ArtifactStore, settin
                     return "cancelled"
             if t > deadline:
                 _kill(proc)
-                return _finish(store, artifacts, job_id, "failed", "timeout",
-                               f"the job ran longer than its {settings.job_timeout_s:g} s limit and was stopped")
+                return _finish(
+                    store,
+                    artifacts,
+                    job_id,
+                    "failed",
+                    "timeout",
+                    f"the job ran longer than its {settings.job_timeout_s:g} s limit and was stopped",
+                )
     finally:
         parent.close()
     proc.join(10)

@@ -37,16 +37,26 @@ class Settings(BaseSettings):
     max_upload_mb: float = Field(200.0, gt=0, le=10_000, description="Largest accepted upload, MB.")
     job_timeout_s: float = Field(900.0, gt=0, le=86_400, description="Wall-clock limit of one job, s.")
     job_memory_mb: int = Field(
-        8192, ge=1200, le=1_000_000, description="Address-space limit of one job's process, MB (OCCT needs ~1 GB to load)."
+        8192,
+        ge=1200,
+        le=1_000_000,
+        description="Address-space limit of one job's process, MB (OCCT needs ~1 GB to load).",
     )
     max_attempts: int = Field(
         2, ge=1, le=5, description="Runs of a job interrupted by a crashed worker before it is failed."
     )
-    heartbeat_s: float = Field(2.0, gt=0, le=60, description="How often a running job reports it is alive, s.")
-    stale_after_s: float = Field(
-        30.0, gt=0, le=3600, description="A running job silent this long on another machine is presumed lost, s."
+    heartbeat_s: float = Field(
+        2.0, gt=0, le=60, description="How often a running job reports it is alive, s."
     )
-    slice_wait_s: float = Field(900.0, gt=0, le=86_400, description="How long POST /v1/slice waits for its job, s.")
+    stale_after_s: float = Field(
+        30.0,
+        gt=0,
+        le=3600,
+        description="A running job silent this long on another machine is presumed lost, s.",
+    )
+    slice_wait_s: float = Field(
+        900.0, gt=0, le=86_400, description="How long POST /v1/slice waits for its job, s."
+    )
     queue: str = Field("dst", min_length=1, max_length=64, description="Celery queue name.")
 
     @model_validator(mode="after")

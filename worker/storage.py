@@ -55,7 +55,12 @@ class ArtifactStore:
         for name, (file, media) in ARTIFACTS.items():
             p = self.path(job_id, file)
             if p.is_file():
-                out[name] = {"file": file, "size": p.stat().st_size, "sha256": sha256_file(p), "media_type": media}
+                out[name] = {
+                    "file": file,
+                    "size": p.stat().st_size,
+                    "sha256": sha256_file(p),
+                    "media_type": media,
+                }
         return out
 
 

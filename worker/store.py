@@ -212,7 +212,12 @@ class JobStore:
             if not done:
                 c.execute(
                     workers.insert().values(
-                        name=name, hostname=host, pid=int(pid), started_at=now, last_seen=now, concurrency=concurrency
+                        name=name,
+                        hostname=host,
+                        pid=int(pid),
+                        started_at=now,
+                        last_seen=now,
+                        concurrency=concurrency,
                     )
                 )
 

@@ -314,7 +314,9 @@ class SegmentSet:
         return out
 
 
-def _point_curve(p: np.ndarray, a: np.ndarray, b: np.ndarray, curv: np.ndarray, len2: np.ndarray) -> np.ndarray:
+def _point_curve(
+    p: np.ndarray, a: np.ndarray, b: np.ndarray, curv: np.ndarray, len2: np.ndarray
+) -> np.ndarray:
     """Distance from points ``p`` (..., 2) to the curves over segments ``a``-``b`` (..., 2), broadcast.
 
     The nearest curve point is found from the projection on the chord by two Gauss-Newton steps in
