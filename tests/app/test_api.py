@@ -12,7 +12,9 @@ import time
 import pytest
 from fastapi.testclient import TestClient
 
-STEP_HEAD = b"ISO-10303-21;\nHEADER;\nFILE_DESCRIPTION((''),'2;1');\nENDSEC;\nDATA;\nENDSEC;\nEND-ISO-10303-21;\n"
+STEP_HEAD = (
+    b"ISO-10303-21;\nHEADER;\nFILE_DESCRIPTION((''),'2;1');\nENDSEC;\nDATA;\nENDSEC;\nEND-ISO-10303-21;\n"
+)
 
 
 @pytest.fixture
@@ -35,7 +37,9 @@ def api(tmp_path, monkeypatch):
 
 
 def upload(api, data: bytes = STEP_HEAD, name: str = "part.step", url: str = "/v1/jobs", **fields):
-    return api.post(url, files={"file": (name, data, "application/step")}, data={k: str(v) for k, v in fields.items()})
+    return api.post(
+        url, files={"file": (name, data, "application/step")}, data={k: str(v) for k, v in fields.items()}
+    )
 
 
 def finish(api, job_id: str, mesh: bytes = b"solid x\n") -> None:
@@ -43,8 +47,15 @@ def finish(api, job_id: str, mesh: bytes = b"solid x\n") -> None:
     d = api.artifacts.job_dir(job_id)
     (d / "mesh.stl").write_bytes(mesh)
     (d / "report.json").write_text('{"version": "1.0"}')
-    api.store.update(job_id, status="succeeded", progress=1.0, stage="done", finished_at=time.time(),
-                     artifacts=api.artifacts.manifest(job_id), result={"triangles": 12, "warnings": ["w"]})
+    api.store.update(
+        job_id,
+        status="succeeded",
+        progress=1.0,
+        stage="done",
+        finished_at=time.time(),
+        artifacts=api.artifacts.manifest(job_id),
+        result={"triangles": 12, "warnings": ["w"]},
+    )
 
 
 def test_upload_creates_a_queued_job(api):
@@ -93,8 +104,11 @@ def test_bad_uploads_get_specific_errors(api, data, fields, status, code):
 
 
 def test_oversized_upload_refused_from_its_header(api):
-    r = api.post("/v1/jobs", content=b"x" * 10, headers={"content-length": str(50_000_000),
-                                                         "content-type": "multipart/form-data; boundary=x"})
+    r = api.post(
+        "/v1/jobs",
+        content=b"x" * 10,
+        headers={"content-length": str(50_000_000), "content-type": "multipart/form-data; boundary=x"},
+    )
     assert r.status_code == 413 and r.json()["error"]["code"] == "upload_too_large"
 
 

@@ -20,8 +20,18 @@ def test_operation_ids_are_stable_and_fields_described():
     spec = json.loads(spec_text())
     ids = [op["operationId"] for path in spec["paths"].values() for op in path.values()]
     assert len(ids) == len(set(ids))
-    assert {"create_job", "get_job", "list_jobs", "job_events", "get_mesh", "get_report", "delete_job", "slice",
-            "health", "readiness"} <= set(ids)
+    assert {
+        "create_job",
+        "get_job",
+        "list_jobs",
+        "job_events",
+        "get_mesh",
+        "get_report",
+        "delete_job",
+        "slice",
+        "health",
+        "readiness",
+    } <= set(ids)
     for name, schema in spec["components"]["schemas"].items():
         for field, prop in schema.get("properties", {}).items():
             if name.startswith(("Body_", "HTTPValidationError", "ValidationError")):
