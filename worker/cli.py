@@ -105,8 +105,8 @@ def _check_report_outputs(args: argparse.Namespace, json_path: str | None) -> No
         _check_output(path)
     if args.plot and os.path.splitext(args.plot)[1].lower() not in {".svg", ".png"}:
         raise _UserError(f"--plot must end in .svg or .png: {args.plot}")
-    if (args.html or args.plot) and not json_path:
-        raise _UserError("--html and --plot need --report (the report they draw)")
+    if (args.html or args.plot or args.baselines) and not json_path:
+        raise _UserError("--html, --plot and --baselines need --report (the report they belong to)")
 
 
 def _progress(args: argparse.Namespace, start: float):

@@ -92,3 +92,79 @@ def test_help_lists_the_options():
         "--ascii",
     ):
         assert opt in res.stdout
+
+
+def test_slice_with_report_html_and_plot(make_step, tmp_path):
+    import json
+
+    step = make_step("cone", radius=6, height=4)
+    out, rep, html, svg = (tmp_path / n for n in ("p.stl", "r.json", "r.html", "p.svg"))
+    res = run_dst(
+        "slice",
+        str(step),
+        "-o",
+        str(out),
+        "--report",
+        str(rep),
+        "--html",
+        str(html),
+        "--plot",
+        str(svg),
+        "--baselines",
+        "occt_fast",
+    )
+    assert res.returncode == 0, res.stderr
+    report = json.loads(rep.read_text())
+    assert [m["name"] for m in report["meshes"]] == ["dst", "occt_fast"]
+    assert len(report["meshes"][0]["layers"]) == len(report["planes"]) == 20
+    assert "max vertex_dev" in res.stderr  # the summary table
+    assert html.read_text().count("<svg") == 1 and svg.read_text().lstrip().startswith("<?xml")
+
+
+def test_report_measures_a_users_mesh(make_step, tmp_path):
+    """`dst report` on a coarse OCCT export: measured, and far worse than DST's own mesh would be."""
+    import json
+
+    from OCP.BRepMesh import BRepMesh_IncrementalMesh
+    from OCP.StlAPI import StlAPI_Writer
+
+    from worker.dst.step_io import read_step
+
+    step = make_step("hemisphere", radius=8)
+    part = read_step(step)
+    BRepMesh_IncrementalMesh(part.compound, 0.2, False, 0.5, False)
+    export = tmp_path / "export.stl"
+    writer = StlAPI_Writer()
+    writer.ASCIIMode = True
+    assert writer.Write(part.compound, str(export))
+    rep = tmp_path / "r.json"
+    res = run_dst("report", str(step), str(export), "-o", str(rep), "--baselines", "none", "-q")
+    assert res.returncode == 0, res.stderr
+    (m,) = json.loads(rep.read_text())["meshes"]
+    assert m["name"] == "export.stl" and m["kind"] == "input"
+    assert m["summary"]["max_vertex_dev"] > 0.05
+
+
+@pytest.mark.parametrize(
+    ("extra", "code", "needle"),
+    [
+        (["--baselines", "nonsense", "--report", "r.json"], 2, "unknown baseline"),
+        (["--baselines", "occt_fast"], 1, "need --report"),
+        (["--plot", "x.gif", "--report", "r.json"], 1, ".svg or .png"),
+        (["--html", "r.html"], 1, "need --report"),
+    ],
+)
+def test_report_option_errors(make_step, tmp_path, extra, code, needle):
+    args = ["slice", str(make_step("cone", radius=3, height=2)), "-o", str(tmp_path / "p.stl")]
+    res = run_dst(*args, *[str(tmp_path / e) if e.endswith((".json", ".gif", ".html")) else e for e in extra])
+    assert res.returncode == code, res.stderr
+    assert needle in res.stderr
+
+
+def test_report_refuses_a_file_that_is_not_stl(make_step, tmp_path):
+    bad = tmp_path / "bad.stl"
+    bad.write_bytes(b"this is not a mesh at all" * 10)
+    res = run_dst(
+        "report", str(make_step("cone", radius=3, height=2)), str(bad), "-o", str(tmp_path / "r.json")
+    )
+    assert res.returncode == 1 and "mesh_read_error" in res.stderr
