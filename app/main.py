@@ -19,7 +19,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Annotated
 
-from fastapi import FastAPI, File, Form, HTTPException, Query, Request, UploadFile
+from fastapi import Depends, FastAPI, File, Form, HTTPException, Query, Request, UploadFile
 from fastapi import Path as PathParam
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response, StreamingResponse
@@ -328,6 +328,32 @@ BaselinesField = Annotated[
 ]
 
 
+class UploadForm:
+    """The multipart fields shared by the two upload endpoints."""
+
+    def __init__(
+        self,
+        file: FileField,
+        layer_height: LayerField = None,
+        first_layer_height: FirstField = None,
+        mode: ModeField = None,
+        segment_length: SegField = None,
+        chord_error: ChordField = None,
+        target_slicer: SlicerField = None,
+        baselines: BaselinesField = None,
+    ):
+        self.file = file
+        self.values = (layer_height, first_layer_height, mode, segment_length, chord_error, target_slicer)
+        self.baselines = baselines
+
+    def params(self, *, default_baselines: str | None = None) -> dict:
+        baselines = self.baselines if self.baselines is not None else default_baselines
+        return _parse_params(*self.values, baselines)
+
+
+Upload = Annotated[UploadForm, Depends()]
+
+
 # --- routes -----------------------------------------------------------------------------------------
 @app.get("/", response_class=HTMLResponse, include_in_schema=False)
 def index() -> str:
@@ -391,23 +417,14 @@ def ready(request: Request) -> JSONResponse:
 )
 async def create_job(
     request: Request,
-    file: FileField,
-    layer_height: LayerField = None,
-    first_layer_height: FirstField = None,
-    mode: ModeField = None,
-    segment_length: SegField = None,
-    chord_error: ChordField = None,
-    target_slicer: SlicerField = None,
-    baselines: BaselinesField = None,
+    form: Upload,
 ) -> JSONResponse:
     """Upload a STEP part and queue its DST job. The same file with the same parameters reuses the
     earlier job (200) instead of creating one (201)."""
-    params = _parse_params(
-        layer_height, first_layer_height, mode, segment_length, chord_error, target_slicer, baselines
-    )
-    tmp, size, sha = await _receive_upload(request, file)
+    params = form.params()
+    tmp, size, sha = await _receive_upload(request, form.file)
     job, reused = await run_in_threadpool(
-        _submit, request, tmp, size, sha, sanitise_name(file.filename), params
+        _submit, request, tmp, size, sha, sanitise_name(form.file.filename), params
     )
     body = job_out(job, reused=reused).model_dump(mode="json")
     return JSONResponse(
@@ -618,28 +635,15 @@ def delete_job(request: Request, job_id: JobId) -> Response:
 )
 async def slice_now(
     request: Request,
-    file: FileField,
-    layer_height: LayerField = None,
-    first_layer_height: FirstField = None,
-    mode: ModeField = None,
-    segment_length: SegField = None,
-    chord_error: ChordField = None,
-    target_slicer: SlicerField = None,
-    baselines: BaselinesField = None,
+    form: Upload,
 ) -> Response:
     """One call for curl: upload, wait for the job, and get the STL streamed back. The job id is in
     the X-DST-Job header (its report stays available under /v1/jobs/{id}/report)."""
-    params = _parse_params(
-        layer_height,
-        first_layer_height,
-        mode,
-        segment_length,
-        chord_error,
-        target_slicer,
-        baselines if baselines is not None else "none",
+    params = form.params(default_baselines="none")
+    tmp, size, sha = await _receive_upload(request, form.file)
+    job, _ = await run_in_threadpool(
+        _submit, request, tmp, size, sha, sanitise_name(form.file.filename), params
     )
-    tmp, size, sha = await _receive_upload(request, file)
-    job, _ = await run_in_threadpool(_submit, request, tmp, size, sha, sanitise_name(file.filename), params)
     deadline = time.monotonic() + _settings(request).slice_wait_s
     while not job.terminal:
         if time.monotonic() > deadline:
