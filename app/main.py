@@ -30,7 +30,7 @@ from app.page import INDEX_HTML
 from worker.dst.errors import InvalidParameters
 from worker.dst.params import SliceParams
 from worker.settings import Settings, get_settings
-from worker.storage import ARTIFACTS, ArtifactStore
+from worker.storage import ARTIFACTS, ArtifactStore, make_artifact_store
 from worker.store import Job, JobStore
 
 API = "/v1"
@@ -71,7 +71,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     settings.ensure_dirs()
     app.state.settings = settings
     app.state.store = JobStore(settings.effective_database_url)
-    app.state.artifacts = ArtifactStore(settings.effective_artifact_dir)
+    app.state.artifacts = make_artifact_store(settings)
     from worker import queue
 
     app.state.enqueue = queue.enqueue
@@ -271,7 +271,7 @@ def _submit(
         old = store.find_reusable(key)
         if old is not None and (
             old.status != "succeeded"
-            or all(artifacts.path(old.id, a["file"]).is_file() for a in old.artifacts.values())
+            or all(artifacts.exists(old.id, a["file"]) for a in old.artifacts.values())
         ):
             return old, True
         job = store.create(
@@ -512,18 +512,75 @@ def _artifact_response(
             detail += f" ({job.error_code}: {job.error_message})"
         raise ApiError(409, "mesh_not_ready" if name == "mesh" else "artifact_not_ready", detail)
     meta = job.artifacts.get(name)
-    path = _artifacts(request).path(job.id, ARTIFACTS[name][0])
-    if meta is None or not path.is_file():
+    store = _artifacts(request)
+    file = ARTIFACTS[name][0]
+    if meta is None or not store.exists(job.id, file):
         raise ApiError(404, "artifact_missing", f"the job has no {name} (removed from storage?)")
     etag = f'"{meta["sha256"]}"'
+    headers = {"ETag": etag, "Cache-Control": "private, max-age=0, must-revalidate"}
     if request.headers.get("if-none-match") == etag:
         return Response(status_code=304, headers={"ETag": etag})
-    return FileResponse(
-        path,
-        media_type=meta["media_type"],
-        filename=download_name,
-        content_disposition_type="attachment" if download_name else "inline",
-        headers={"ETag": etag, "Cache-Control": "private, max-age=0, must-revalidate"},
+    if not store.remote:
+        return FileResponse(
+            store.path(job.id, file),
+            media_type=meta["media_type"],
+            filename=download_name,
+            content_disposition_type="attachment" if download_name else "inline",
+            headers=headers,
+        )
+    return _ranged_stream(request, store, job.id, file, meta, download_name, headers)
+
+
+def parse_range(header: str | None, size: int) -> tuple[int, int] | None:
+    """(start, end inclusive) of a single-range ``bytes=`` header; None for the whole file.
+
+    Raises ApiError 416 for a range outside the file."""
+    if not header or not header.startswith("bytes=") or "," in header:
+        return None
+    first, _, last = header[6:].strip().partition("-")
+    try:
+        if first == "":
+            n = int(last)
+            start, end = max(0, size - n), size - 1
+        else:
+            start = int(first)
+            end = min(int(last), size - 1) if last else size - 1
+    except ValueError:
+        return None
+    if start > end or start >= size:
+        raise ApiError(
+            416,
+            "range_not_satisfiable",
+            f"bytes {header[6:]} of a {size}-byte file",
+            headers={"Content-Range": f"bytes */{size}"},
+        )
+    return start, end
+
+
+def _ranged_stream(request, store, job_id, file, meta, download_name, headers) -> Response:
+    """An artifact from a remote store, streamed in chunks, with single-range support."""
+    size = int(meta["size"])
+    rng = parse_range(request.headers.get("range"), size)
+    start, end = rng if rng else (0, size - 1)
+    headers = {**headers, "Accept-Ranges": "bytes", "Content-Length": str(end - start + 1)}
+    if download_name:
+        headers["Content-Disposition"] = f'attachment; filename="{download_name}"'
+    if rng:
+        headers["Content-Range"] = f"bytes {start}-{end}/{size}"
+
+    def chunks():
+        with store.open(job_id, file) as fh:
+            fh.seek(start)
+            left = end - start + 1
+            while left > 0:
+                block = fh.read(min(1 << 20, left))
+                if not block:
+                    break
+                left -= len(block)
+                yield block
+
+    return StreamingResponse(
+        chunks(), status_code=206 if rng else 200, media_type=meta["media_type"], headers=headers
     )
 
 
@@ -567,7 +624,9 @@ def _ascii_copy(request: Request, job: Job) -> Path:
     art = _artifacts(request)
     out = art.path(job.id, "mesh_ascii.stl")
     if not out.is_file():
-        raw = np.fromfile(art.path(job.id, "mesh.stl"), dtype=np.uint8, offset=84)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with art.open(job.id, "mesh.stl") as fh:
+            raw = np.frombuffer(fh.read(), dtype=np.uint8)[84:]
         rec = raw.view(np.dtype([("n", "<f4", (3,)), ("v", "<f4", (3, 3)), ("a", "<u2")]))
         v = rec["v"].reshape(-1, 3)
         uniq, inv = np.unique(v, axis=0, return_inverse=True)

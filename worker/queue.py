@@ -14,7 +14,7 @@ from kombu.exceptions import KombuError
 from sqlalchemy.exc import SQLAlchemyError
 
 from worker.settings import get_settings
-from worker.storage import ArtifactStore
+from worker.storage import ArtifactStore, make_artifact_store
 from worker.store import JobStore, this_worker_name
 
 log = logging.getLogger("dst.worker")
@@ -47,7 +47,7 @@ def store() -> JobStore:
 def artifacts() -> ArtifactStore:
     global _artifacts
     if _artifacts is None:
-        _artifacts = ArtifactStore(settings.effective_artifact_dir)
+        _artifacts = make_artifact_store(settings)
     return _artifacts
 
 

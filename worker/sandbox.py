@@ -84,6 +84,12 @@ def run_sandboxed(job_id: str, store: JobStore, artifacts: ArtifactStore, settin
     if not claimed:
         return "skipped"  # another worker took it, or it was cancelled meanwhile
     job_dir = artifacts.job_dir(job_id)
+    try:
+        input_path = artifacts.fetch_input(job_id)
+    except OSError as exc:
+        return _finish(
+            store, artifacts, job_id, "failed", "input_missing", f"the uploaded file is gone: {exc}"
+        )
     ctx = mp.get_context("spawn")
     parent, child = ctx.Pipe(duplex=False)
     proc = ctx.Process(
@@ -91,7 +97,7 @@ def run_sandboxed(job_id: str, store: JobStore, artifacts: ArtifactStore, settin
         args=(
             child,
             str(job_dir),
-            str(artifacts.input_path(job_id)),
+            str(input_path),
             job.params,
             job.file_name,
             settings.job_memory_mb,
@@ -165,7 +171,13 @@ def run_sandboxed(job_id: str, store: JobStore, artifacts: ArtifactStore, settin
         return _finish(store, artifacts, job_id, "failed", "worker_crashed", f"the job's process {reason}")
     if outcome[0] == "error":
         return _finish(store, artifacts, job_id, "failed", outcome[1], outcome[2])
-    return _finish(store, artifacts, job_id, "succeeded", None, None, result=outcome[1])
+    try:
+        manifest = artifacts.publish(job_id)
+    except OSError as exc:
+        return _finish(
+            store, artifacts, job_id, "failed", "storage_error", f"could not store the results: {exc}"
+        )
+    return _finish(store, artifacts, job_id, "succeeded", None, None, result=outcome[1], manifest=manifest)
 
 
 def _finish(
@@ -177,6 +189,7 @@ def _finish(
     message: str | None,
     *,
     result: dict[str, Any] | None = None,
+    manifest: dict[str, Any] | None = None,
 ) -> str:
     values: dict[str, Any] = {
         "status": status,
@@ -186,7 +199,7 @@ def _finish(
         "sandbox_pid": None,
     }
     if status == "succeeded":
-        values.update(progress=1.0, stage="done", result=result or {}, artifacts=artifacts.manifest(job_id))
+        values.update(progress=1.0, stage="done", result=result or {}, artifacts=manifest or {})
     else:
         values.update(stage=status)
     store.update(job_id, only_if_status=("running",), **values)

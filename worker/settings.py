@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from functools import lru_cache
 from pathlib import Path
+from typing import Any
 
 from pydantic import Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -25,6 +26,15 @@ class Settings(BaseSettings):
     )
     artifact_dir: Path | None = Field(
         None, description="Where job artifacts (meshes, reports) live; default <data_dir>/artifacts."
+    )
+    artifact_url: str | None = Field(
+        None,
+        description="fsspec URL for artifacts shared by every machine (s3://bucket/prefix); jobs then run in "
+        "<artifact_dir> as local scratch and upload their files when they finish.",
+    )
+    artifact_options: dict[str, Any] = Field(
+        default_factory=dict,
+        description='fsspec storage options as JSON, e.g. {"client_kwargs": {"endpoint_url": "http://minio:9000"}}.',
     )
     database_url: str | None = Field(
         None, description="SQLAlchemy URL of the job store; default sqlite:///<data_dir>/jobs.sqlite."
@@ -63,12 +73,17 @@ class Settings(BaseSettings):
     def _shared_storage_for_remote_workers(self) -> Settings:
         broker = self.effective_broker_url
         given = self.model_fields_set
-        shared = "data_dir" in given or {"artifact_dir", "database_url"} <= given
+        shared = (
+            "data_dir" in given
+            or {"artifact_dir", "database_url"} <= given
+            or {"artifact_url", "database_url"} <= given
+        )
         if not broker.startswith(LOCAL_BROKER_SCHEMES) and not shared:
             raise ValueError(
                 f"DST_BROKER_URL={broker} lets workers run on other machines, but artifacts would be kept in "
                 f"the machine-local default {self.data_dir.resolve()}: set DST_DATA_DIR (or DST_ARTIFACT_DIR and "
-                "DST_DATABASE_URL) to storage every API and worker machine mounts"
+                "DST_DATABASE_URL, or DST_ARTIFACT_URL=s3://... and DST_DATABASE_URL) to storage every API and "
+                "worker machine reaches"
             )
         return self
 

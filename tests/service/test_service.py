@@ -236,3 +236,24 @@ def test_remote_cli_round_trip(service_factory, parts, tmp_path):
     )
     assert r.returncode == 0, r.stderr
     assert out.stat().st_size > 84 and json.loads((tmp_path / "r.json").read_text())["version"] == "1.0"
+
+
+def test_artifacts_on_s3(service_factory, parts, s3_bucket, tmp_path):
+    """DST_ARTIFACT_URL=s3://...: uploads and results live in the bucket, streamed back with ranges."""
+    url, options, fs = s3_bucket
+    svc = service_factory(env={"DST_ARTIFACT_URL": url, "DST_ARTIFACT_OPTIONS": json.dumps(options)}).start()
+    with DstClient(svc.url) as c:
+        job = c.wait(c.submit(parts["hemisphere"], baselines="none")["id"])
+        stored = {p.rsplit("/", 1)[1] for p in fs.ls(f"dst-test/artifacts/{job['id']}")}
+        assert {"input.step", "mesh.stl", "report.json", "report.html", "plot.svg", "plot.png"} <= stored
+        assert not (svc.data_dir / "artifacts" / job["id"]).exists()  # scratch cleaned after upload
+        c.download_mesh(job["id"], tmp_path / "s3.stl")
+        body = (tmp_path / "s3.stl").read_bytes()
+        assert body == fs.cat(f"dst-test/artifacts/{job['id']}/mesh.stl")
+        r = httpx.get(svc.url + job["links"]["mesh"], headers={"Range": "bytes=80-83"})
+        assert r.status_code == 206 and r.content == body[80:84]
+        assert r.headers["content-range"] == f"bytes 80-83/{len(body)}"
+        assert Report.model_validate(c.report(job["id"])).meshes[0].name == "dst"
+        c.delete(job["id"])
+        fs.invalidate_cache()
+        assert not fs.exists(f"dst-test/artifacts/{job['id']}")
