@@ -156,8 +156,13 @@ def s3_bucket():
         "client_kwargs": {"endpoint_url": endpoint, "region_name": "us-east-1"},
     }
     boto3 = pytest.importorskip("boto3")
-    boto3.client("s3", endpoint_url=endpoint, aws_access_key_id="testing", aws_secret_access_key="testing",
-                 region_name="us-east-1").create_bucket(Bucket="dst-test")
+    boto3.client(
+        "s3",
+        endpoint_url=endpoint,
+        aws_access_key_id="testing",
+        aws_secret_access_key="testing",
+        region_name="us-east-1",
+    ).create_bucket(Bucket="dst-test")
     fs = s3fs.S3FileSystem(**options)
     yield "s3://dst-test/artifacts", options, fs
     proc.terminate()

@@ -31,9 +31,10 @@ from worker.dst.sections import cut_topology
 from worker.dst.step_io import LoadedPart
 from worker.dst.topomesh import build_topomesh
 
-# The exact section of a plane through a flat face is taken this far above the plane (10x the on-plane
-# snapping tolerance): a wall standing on the face moves by this times its slope's cotangent.
-FLAT_FACE_LIFT_MM = 10 * C.ON_PLANE_TOL_MM
+# The exact section of a plane through a flat face is taken just above the plane: twice the larger of
+# the on-plane snapping tolerance and the plane's float32 half-step (so the face is no longer "on" the
+# lifted plane). A surface standing on the face moves by the lift times its slope's cotangent there.
+FLAT_FACE_LIFT_FACTOR = 2.0
 
 
 @dataclass
@@ -91,7 +92,8 @@ def exact_sections(
             # stands on the face. Other solids keep the plane where it is.
             flat.update(topo.flat_planes)
             lifted = world.copy()
-            lifted[topo.flat_planes] += FLAT_FACE_LIFT_MM
+            j = np.asarray(topo.flat_planes)
+            lifted[j] += FLAT_FACE_LIFT_FACTOR * np.maximum(C.ON_PLANE_TOL_MM, noise[j])
             topo = cut_topology(mesh, lifted, on_plane_tol=C.ON_PLANE_TOL_MM, noise_tol=noise)
         topos.append(topo)
     for mesh, topo in zip(meshes, topos, strict=True):

@@ -43,7 +43,7 @@ from worker.dst.meshops import edge_defects, signed_volume
 from worker.dst.params import SliceParams
 from worker.dst.pipeline import DstMesh, bbox_diagonal, simplification_warnings
 from worker.dst.planes import plan_planes
-from worker.dst.reference import FLAT_FACE_LIFT_MM, exact_sections
+from worker.dst.reference import exact_sections
 from worker.dst.step_io import LoadedPart, solid_volume
 
 REPORT_VERSION = "1.0"
@@ -354,7 +354,7 @@ def build_report(
     if ref.flat_planes:
         warnings.append(
             f"the report measures plane(s) {', '.join(map(str, ref.flat_planes))} just above the flat face "
-            f"(the exact section {FLAT_FACE_LIFT_MM} mm above the plane; every mesh cut with vertices on the "
+            f"(the exact section a few micrometres above the plane; every mesh cut with vertices on the "
             "plane counting as below it), which is what a slicer keeping the outline above the face sees"
         )
     small = [(j, _loop_length(p)) for j, ls in enumerate(ref.loops) for p in ls]
