@@ -13,10 +13,12 @@ All points are in millimetres in the part's placement (``BRepAdaptor_*`` apply f
 
 from __future__ import annotations
 
+from OCP.BRep import BRep_Tool
 from OCP.BRepAdaptor import BRepAdaptor_Curve, BRepAdaptor_Surface
-from OCP.BRepClass import BRepClass_FaceClassifier
 from OCP.Extrema import Extrema_ExtPC
 from OCP.gp import gp_Pnt, gp_Pnt2d, gp_Vec
+from OCP.IntTools import IntTools_FClass2d
+from OCP.ShapeAnalysis import ShapeAnalysis_Surface
 from OCP.TopAbs import TopAbs_IN, TopAbs_ON
 from scipy.optimize import brentq
 
@@ -37,7 +39,7 @@ class FaceEval:
     adaptor : BRepAdaptor_Surface of the face (location applied)
     """
 
-    __slots__ = ("ad", "face", "u0", "u1", "v0", "v1", "_p", "_du", "_dv")
+    __slots__ = ("ad", "face", "u0", "u1", "v0", "v1", "_p", "_du", "_dv", "_sas", "_fclass")
 
     def __init__(self, adaptor: BRepAdaptor_Surface):
         self.ad = adaptor
@@ -45,6 +47,17 @@ class FaceEval:
         self.u0, self.u1 = adaptor.FirstUParameter(), adaptor.LastUParameter()
         self.v0, self.v1 = adaptor.FirstVParameter(), adaptor.LastVParameter()
         self._p, self._du, self._dv = gp_Pnt(), gp_Vec(), gp_Vec()
+        self._sas = None
+        self._fclass: dict[float, IntTools_FClass2d] = {}
+
+    def uv_near(self, xyz: tuple[float, float, float], seed: tuple[float, float]) -> tuple[float, float]:
+        """(u, v) of a point on the surface, on the parameter branch nearest ``seed`` (periodic surfaces)."""
+        if self._sas is None:
+            self._sas = ShapeAnalysis_Surface(BRep_Tool.Surface_s(self.face))
+        p = self._sas.NextValueOfUV(
+            gp_Pnt2d(float(seed[0]), float(seed[1])), gp_Pnt(*map(float, xyz)), 1e-9, -1.0
+        )
+        return p.X(), p.Y()
 
     def point(self, u: float, v: float) -> tuple[float, float, float]:
         p = self.ad.Value(u, v)
@@ -56,9 +69,11 @@ class FaceEval:
         return self._p.Z(), self._du.Z(), self._dv.Z()
 
     def contains(self, u: float, v: float, tol: float = 1e-9) -> bool:
-        """True if (u, v) is inside the trimmed face or on its boundary."""
-        state = BRepClass_FaceClassifier(self.face, gp_Pnt2d(u, v), tol).State()
-        return state in (TopAbs_IN, TopAbs_ON)
+        """True if (u, v) is inside the trimmed face or on its boundary (a classifier kept per face)."""
+        fc = self._fclass.get(tol)
+        if fc is None:
+            fc = self._fclass[tol] = IntTools_FClass2d(self.face, tol)
+        return fc.Perform(gp_Pnt2d(u, v)) in (TopAbs_IN, TopAbs_ON)
 
     def root_on_uv_segment(
         self, ua: float, va: float, ub: float, vb: float, c: float

@@ -130,6 +130,7 @@ def slice_part(
         "max_gap_mm": 0.0,
         "tangent_segments": 0,
         "newton_failures": 0,
+        "outside_face_points": 0,
         "max_gap_at": "",
     }
     for si, (mesh, topo) in enumerate(zip(meshes, topos, strict=True)):

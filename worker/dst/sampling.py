@@ -42,6 +42,10 @@ from worker.dst.sections import SectionTopology
 from worker.dst.topomesh import TopoMesh
 
 GAP_SPAN_REL = 1e-6  # a seed interval this small (relative to its run) cannot hold another exact point
+# A run whose exact end lies more than this many topology deflections from its topology crossing has
+# its points checked against the face's trim (the ordinary gap is within one deflection)
+SUSPECT_DEFLECTIONS = 5.0
+TRIM_TOL_MM = 1e-6
 MAX_REFINE_ROUNDS = 40  # halving a segment 24 times takes 1 m down to 60 nm: still failing means broken
 
 
@@ -66,6 +70,7 @@ class SamplingStats:
     tolerance_gaps: int = 0  # segments kept over budget because the B-rep is inconsistent there
     tangent_segments: int = 0  # segments kept over budget where the plane is tangent to the surface
     newton_failures: int = 0  # seeds with no exact point (dropped; see tangent_segments)
+    outside_face_points: int = 0  # points beyond a face's trim (a nearly tangent edge), dropped
     max_gap_mm: float = 0.0
     max_gap_at: str = ""
 
@@ -83,6 +88,9 @@ class _Run:
     n_seg: int  # initial number of segments
     zc: float  # world height of the plane, mm
     plane: int  # plane index
+    # exact ends far from their topology crossings, with the distance they moved: points near them are
+    # checked against the face's trim
+    moved: tuple[tuple[np.ndarray, float], ...] = ()
 
 
 class RingSampler:
@@ -252,7 +260,8 @@ class RingSampler:
             s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
             n_seg = max(min_seg if len(starts) == 1 else 1, math.ceil(s[-1] / (self.seg_len * SEGMENT_FILL)))
             step = 2.0 * float(self.tri_uv_scale[seg_tri[idx[:-1]]].max())
-            runs.append(_Run(int(faces[i0]), s, uv, step, start, end, n_seg, zc, j))
+            moved = self._moved(topo.cross_xyz[cs[[0, -1]]], pts[[0, -1]])
+            runs.append(_Run(int(faces[i0]), s, uv, step, start, end, n_seg, zc, j, moved))
         return runs
 
     def pinned_loop(self, li: int) -> list[int]:
@@ -289,7 +298,12 @@ class RingSampler:
             uv = np.stack([topo.cross_uv_start[c], topo.cross_uv_end[c]])
             t = int(topo.seg_tri[c])
             step = 2.0 * float(self.tri_uv_scale[t])
-            runs.append(_Run(int(self.mesh.tri_face[t]), np.array([0.0, d]), uv, step, start, end, 1, zc, j))
+            moved = self._moved(
+                topo.cross_xyz[[c, nxt]], np.array([self.pool.xyz[start], self.pool.xyz[end]])
+            )
+            runs.append(
+                _Run(int(self.mesh.tri_face[t]), np.array([0.0, d]), uv, step, start, end, 1, zc, j, moved)
+            )
             sampled.append((c, key))
         here: dict[tuple[int, int], list[int]] = {}  # this loop's in-plane edges, low node to high
         for (c, key), run_pts in zip(sampled, self._sample_runs(runs), strict=True):
@@ -440,11 +454,38 @@ class RingSampler:
         out = []
         for r, p in zip(runs, pts, strict=True):
             p.sort(key=lambda item: item[0])
+            if r.moved:
+                p = [
+                    p[0],
+                    *(
+                        item
+                        for item in p[1:-1]
+                        if not _near_moved(r, item[1]) or self._inside_face(r, item[1])
+                    ),
+                    p[-1],
+                ]
             ids = []
             for _s, xyz, vid in p:
                 ids.append(vid if vid >= 0 else self.pool.add((float(xyz[0]), float(xyz[1]), r.zc), r.plane))
             out.append(ids)
         return out
+
+    def _inside_face(self, run: _Run, xyz) -> bool:
+        """Is a point solved on the run's surface inside the face's trimmed region? Newton works on the
+        untrimmed surface: where the coarse topology crosses a nearly tangent edge far from its exact
+        root, seeds can converge beyond the face's boundary."""
+        ev = self.mesh.faces[run.face]
+        seed = run.uv[int(np.argmin(np.linalg.norm(run.uv - run.uv.mean(axis=0), axis=1)))]
+        u, v = ev.uv_near((float(xyz[0]), float(xyz[1]), run.zc), (float(seed[0]), float(seed[1])))
+        inside = ev.contains(u, v, tol=TRIM_TOL_MM)
+        if not inside:
+            self.stats.outside_face_points += 1
+        return inside
+
+    def _moved(self, topo_ends: np.ndarray, exact_ends: np.ndarray) -> tuple[tuple[np.ndarray, float], ...]:
+        gap = np.linalg.norm(exact_ends - topo_ends, axis=1)
+        far = gap > SUSPECT_DEFLECTIONS * self.mesh.deflection
+        return tuple((exact_ends[k].copy(), float(gap[k]) + self.seg_len) for k in np.flatnonzero(far))
 
     def _d1(self, fa: np.ndarray, ua: np.ndarray, va: np.ndarray, ads, p, du, dv) -> np.ndarray:
         """(n, 9) rows P, Pu, Pv: closed forms for elementary faces, OCCT's D1 for the others."""
@@ -528,6 +569,11 @@ def _point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.n
     t = np.einsum("ij,ij->i", p - a, ab) / np.where(denom > 0, denom, 1.0)
     t = np.clip(t, 0.0, 1.0)
     return np.linalg.norm(p - (a + t[:, None] * ab), axis=1)
+
+
+def _near_moved(run: _Run, xyz) -> bool:
+    p = np.array([xyz[0], xyz[1], run.zc])
+    return any(float(np.linalg.norm(p - end)) <= radius for end, radius in run.moved)
 
 
 def _dedupe_cyclic(vids: list[int], pool: VertexPool) -> list[int]:
