@@ -122,13 +122,16 @@ def test_one_call_slice_and_failed_jobs(service_factory, parts, tmp_path):
 
 
 def test_timeout_and_crash_end_the_job_not_the_worker(service_factory, parts):
-    svc = service_factory(env={"DST_JOB_TIMEOUT_S": "4"}).start()
+    # 20 s: far more than the normal job below needs even on a loaded machine, far less than the heavy
+    # ones (a 0.02 mm torus: ~3 million ring vertices)
+    svc = service_factory(env={"DST_JOB_TIMEOUT_S": "20"}).start()
+    heavy = {"layer_height": 0.02, "segment_length": 0.02, "chord_error": 0.001, "baselines": "none"}
     with DstClient(svc.url) as c:
-        slow = c.submit(parts["torus"], layer_height=0.05, segment_length=0.05, chord_error=0.001)
+        slow = c.submit(parts["torus"], **heavy)
         job = wait_status(c, slow["id"], ("failed", "succeeded"))
         assert job["status"] == "failed" and job["error"]["code"] == "timeout"
 
-        victim = c.submit(parts["torus"], layer_height=0.05, segment_length=0.06, chord_error=0.001)
+        victim = c.submit(parts["torus"], **{**heavy, "segment_length": 0.021})
         wait_status(c, victim["id"], ("running",))
         store = svc.store()
         deadline = time.monotonic() + 30
