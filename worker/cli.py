@@ -33,7 +33,7 @@ def _add_slicing_options(p: argparse.ArgumentParser) -> None:
     )
 
 
-def _add_report_options(p: argparse.ArgumentParser, *, json_flag: str) -> None:
+def _add_report_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--baselines",
         default=None,
@@ -59,7 +59,7 @@ def _add_slice_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--report", default=None, help="also write the deviation report (JSON) of the mesh and the baselines"
     )
-    _add_report_options(p, json_flag="--report")
+    _add_report_options(p)
     p.set_defaults(func=_cmd_slice)
 
 
@@ -75,7 +75,7 @@ def _add_report_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("mesh", help="STL file to measure (binary or ASCII)")
     p.add_argument("-o", "--output", required=True, help="report JSON to write")
     _add_slicing_options(p)
-    _add_report_options(p, json_flag="-o")
+    _add_report_options(p)
     p.set_defaults(func=_cmd_report)
 
 

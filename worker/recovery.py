@@ -31,6 +31,8 @@ def is_orphaned(job: Job, settings: Settings, live_workers: set[str]) -> bool:
         host, _, pid = job.worker.rpartition(":")
         if host == socket.gethostname() and pid.isdigit() and not _pid_alive(int(pid)):
             return True
+        if job.worker not in live_workers:  # its worker has not reported for stale_after_s
+            return True
     beat = job.heartbeat_at or job.started_at or job.updated_at
     return time.time() - beat > settings.stale_after_s
 
