@@ -27,24 +27,15 @@ from starlette.concurrency import run_in_threadpool
 
 from app import schemas as S
 from app.page import INDEX_HTML
+from worker.dst.baselines import parse_baselines
 from worker.dst.errors import InvalidParameters
 from worker.dst.params import SliceParams
+from worker.dst.sniff import SNIFF_BYTES, sniff_step
 from worker.settings import Settings, get_settings
 from worker.storage import ARTIFACTS, ArtifactStore, make_artifact_store
 from worker.store import Job, JobStore
 
 API = "/v1"
-SNIFF_BYTES = 256
-P21_MAGIC = b"ISO-10303-21"
-DEFAULT_BASELINES = ("occt_fast", "occt_high_quality", "prusaslicer")
-BASELINE_NAMES = (
-    "occt_fast",
-    "occt_high_quality",
-    "occt_reference",
-    "prusaslicer",
-    "bambu_orca",
-    "prusaslicer_high",
-)
 INPUT_ERRORS = {"step_read_error", "empty_geometry", "not_a_solid", "invalid_parameters", "resource_limit"}
 
 ERROR_RESPONSES = {
@@ -207,22 +198,9 @@ def _parse_params(
             chord_error=chord_error,
             target_slicer=target_slicer,
         )
+        names = parse_baselines(baselines)
     except InvalidParameters as exc:
         raise ApiError(422, "invalid_parameters", str(exc)) from None
-    names = (
-        DEFAULT_BASELINES
-        if baselines is None
-        else tuple(
-            dict.fromkeys(b.strip() for b in baselines.split(",") if b.strip() and b.strip() != "none")
-        )
-    )
-    unknown = [b for b in names if b not in BASELINE_NAMES]
-    if unknown:
-        raise ApiError(
-            422,
-            "invalid_parameters",
-            f"unknown baseline {', '.join(unknown)}; choose from {', '.join(BASELINE_NAMES)} or 'none'",
-        )
     out = p.model_dump()
     out["baselines"] = list(names)
     return out
@@ -253,7 +231,7 @@ async def _receive_upload(request: Request, file: UploadFile) -> tuple[Path, int
                 out.write(chunk)
         if size == 0:
             raise ApiError(422, "not_step", "the uploaded file is empty")
-        if not head.lstrip(b"\xef\xbb\xbf \t\r\n").upper().startswith(P21_MAGIC):
+        if not sniff_step(head):
             raise ApiError(422, "not_step", "not a STEP file: it does not start with the ISO-10303-21 header")
     except BaseException:
         path.unlink(missing_ok=True)
@@ -619,7 +597,7 @@ def _ascii_copy(request: Request, job: Job) -> Path:
     """The ASCII STL, made once from the binary one and kept beside it."""
     import numpy as np
 
-    from worker.dst.stl_io import write_stl
+    from worker.dst.stl_io import STL_RECORD, write_stl
 
     art = _artifacts(request)
     out = art.path(job.id, "mesh_ascii.stl")
@@ -627,7 +605,7 @@ def _ascii_copy(request: Request, job: Job) -> Path:
         out.parent.mkdir(parents=True, exist_ok=True)
         with art.open(job.id, "mesh.stl") as fh:
             raw = np.frombuffer(fh.read(), dtype=np.uint8)[84:]
-        rec = raw.view(np.dtype([("n", "<f4", (3,)), ("v", "<f4", (3, 3)), ("a", "<u2")]))
+        rec = raw.view(STL_RECORD)
         v = rec["v"].reshape(-1, 3)
         uniq, inv = np.unique(v, axis=0, return_inverse=True)
         write_stl(out, uniq, inv.reshape(-1, 3), ascii=True, name=Path(job.file_name).stem or "dst")

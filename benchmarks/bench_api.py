@@ -43,10 +43,14 @@ def main() -> None:
     svc = Service(tmp / "data", args=("--workers", "2")).start()
     try:
         with httpx.Client(base_url=svc.url, timeout=30) as http:
+
             def submit(seg: float) -> str:
                 with open(torus, "rb") as fh:
-                    r = http.post("/v1/jobs", files={"file": ("torus.step", fh)},
-                                  data={"layer_height": "0.05", "segment_length": str(seg), "chord_error": "0.002"})
+                    r = http.post(
+                        "/v1/jobs",
+                        files={"file": ("torus.step", fh)},
+                        data={"layer_height": "0.05", "segment_length": str(seg), "chord_error": "0.002"},
+                    )
                 r.raise_for_status()
                 return r.json()["id"]
 
@@ -62,8 +66,10 @@ def main() -> None:
         print(f"{'GET /v1/jobs/{id}, ms':28} {'p50':>8} {'p95':>8} {'p99':>8} {'max':>8}")
         print(row("idle service (baseline)", idle))
         print(row("2 heavy jobs on 2 cores", busy))
-        print(f"p99 busy / idle: {statistics.quantiles(busy, n=100)[98] / statistics.quantiles(idle, n=100)[98]:.2f}"
-              f"   (jobs still {states} at the end of the measurement; target p99 < 100 ms)")
+        print(
+            f"p99 busy / idle: {statistics.quantiles(busy, n=100)[98] / statistics.quantiles(idle, n=100)[98]:.2f}"
+            f"   (jobs still {states} at the end of the measurement; target p99 < 100 ms)"
+        )
     finally:
         svc.stop()
 

@@ -26,9 +26,10 @@ CORPUS = ROOT.parent / "shared" / "corpus"
 
 
 def _dst(path: str, layer: float, q) -> None:
+    from worker.dst.baselines import DEFAULT_BASELINES
     from worker.dst.params import SliceParams
     from worker.dst.pipeline import slice_step
-    from worker.dst.report import DEFAULT_BASELINES, build_report
+    from worker.dst.report import build_report
 
     params = SliceParams(layer_height=layer)
     t = time.perf_counter()

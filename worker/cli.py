@@ -127,7 +127,7 @@ def _cmd_slice(args: argparse.Namespace) -> int:
     _check_output(args.output)
     _check_report_outputs(args, args.report)
     if args.report:
-        from worker.dst.report import parse_baselines  # noqa: PLC0415
+        from worker.dst.baselines import parse_baselines  # noqa: PLC0415
 
         baselines = parse_baselines(args.baselines)
 
@@ -163,7 +163,8 @@ def _cmd_report(args: argparse.Namespace) -> int:
         if not os.path.isfile(path):
             raise _UserError(f"input file not found: {path}")
     _check_report_outputs(args, args.output)
-    from worker.dst.report import MeshInput, build_report, parse_baselines  # noqa: PLC0415
+    from worker.dst.baselines import parse_baselines  # noqa: PLC0415
+    from worker.dst.report import MeshInput, build_report  # noqa: PLC0415
     from worker.dst.step_io import read_step  # noqa: PLC0415
     from worker.dst.stl_io import read_stl  # noqa: PLC0415
 

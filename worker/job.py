@@ -16,10 +16,11 @@ def run_job(
 
     Returns a short summary for the job record. Raises the core's ``DstError`` subclasses on bad input.
     """
+    from worker.dst.baselines import parse_baselines
     from worker.dst.params import SliceParams
     from worker.dst.pipeline import slice_step
     from worker.dst.render import write_html, write_json, write_plot
-    from worker.dst.report import build_report, parse_baselines
+    from worker.dst.report import build_report
 
     values = dict(params)
     baselines = parse_baselines(values.pop("baselines", None))

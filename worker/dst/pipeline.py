@@ -81,8 +81,7 @@ def slice_part(
 
     diag, loose_height = bbox_diagonal(part)
     plan_planes(height=loose_height, params=params)  # refuse absurd plane counts before any meshing
-    deflection = min(C.TOPO_DEFLECTION_MAX_MM, max(C.TOPO_DEFLECTION_MIN_MM, C.TOPO_DEFLECTION_REL * diag))
-    deflection = min(deflection, params.chord_error)
+    deflection = min(topo_deflection(diag), params.chord_error)
     t = time.perf_counter()
     meshes = []
     for si, solid in enumerate(part.solids):
@@ -229,6 +228,11 @@ def estimated_triangles(topo, params: SliceParams) -> float:
         return 0.0
     length = float(np.linalg.norm(topo.cross_xyz[topo.succ] - topo.cross_xyz, axis=1).sum())
     return 2.0 * length / (params.segment_length * C.SEGMENT_FILL)
+
+
+def topo_deflection(diag: float) -> float:
+    """BRepMesh deflection (mm) of the topology mesh of a part with this bounding-box diagonal."""
+    return min(C.TOPO_DEFLECTION_MAX_MM, max(C.TOPO_DEFLECTION_MIN_MM, C.TOPO_DEFLECTION_REL * diag))
 
 
 def bbox_diagonal(part: LoadedPart) -> tuple[float, float]:

@@ -26,6 +26,7 @@ from OCP.TopoDS import TopoDS
 
 from worker.dst import constants as C
 from worker.dst.lowest import snap_extremes
+from worker.dst.pipeline import bbox_diagonal
 from worker.dst.sampling import RingSampler, VertexPool
 from worker.dst.sections import cut_topology
 from worker.dst.step_io import LoadedPart
@@ -59,7 +60,7 @@ class ExactSections:
     flat_planes: list[int]
 
     def perimeters(self) -> np.ndarray:
-        return np.array([sum(_closed_length(p) for p in ls) for ls in self.loops])
+        return np.array([sum(closed_length(p) for p in ls) for ls in self.loops])
 
 
 def exact_sections(
@@ -74,7 +75,8 @@ def exact_sections(
 
     ``heights`` may be a function of the part's exact height (highest minus lowest point).
     """
-    meshes = [_topomesh(s, deflection) for s in part.solids]
+    diag, _ = bbox_diagonal(part)  # merge tolerance relative to the whole part, as in the DST build
+    meshes = [_topomesh(s, deflection, diag) for s in part.solids]
     zmin, zmax = snap_extremes(meshes)
     if callable(heights):
         heights = heights(zmax - zmin)
@@ -149,22 +151,13 @@ def occt_sections(
     return out
 
 
-def _topomesh(solid, deflection: float):
-    diag = _diagonal(solid)
+def _topomesh(solid, deflection: float, diag: float):
     BRepTools.Clean_s(solid)
     return build_topomesh(
         solid, deflection=deflection, angular=C.TOPO_ANGULAR_RAD, merge_tol=C.MERGE_TOL_REL * diag
     )
 
 
-def _diagonal(solid) -> float:
-    from OCP.Bnd import Bnd_Box
-    from OCP.BRepBndLib import BRepBndLib
-
-    box = Bnd_Box()
-    BRepBndLib.Add_s(solid, box, False)
-    return float(np.linalg.norm(np.subtract(box.CornerMax().Coord(), box.CornerMin().Coord())))
-
-
-def _closed_length(p: np.ndarray) -> float:
+def closed_length(p: np.ndarray) -> float:
+    """Length of a closed polyline (k, 2), its last point joined to its first."""
     return float(np.linalg.norm(np.roll(p, -1, axis=0) - p, axis=1).sum())

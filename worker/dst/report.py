@@ -27,7 +27,7 @@ from OCP.TopLoc import TopLoc_Location
 from OCP.TopoDS import TopoDS
 from pydantic import BaseModel, ConfigDict, Field
 
-from worker.dst import constants as C
+from worker.dst.baselines import BASELINE_PRESETS, DEFAULT_BASELINES, Preset, parse_baselines
 from worker.dst.deviation import (
     DENSE_SPACING_MM,
     SegmentSet,
@@ -38,12 +38,12 @@ from worker.dst.deviation import (
     loops_to_segments,
     span_curvatures,
 )
-from worker.dst.errors import InvalidParameters, TessellationError
+from worker.dst.errors import TessellationError
 from worker.dst.meshops import edge_defects, signed_volume
 from worker.dst.params import SliceParams
-from worker.dst.pipeline import DstMesh, bbox_diagonal, simplification_warnings
+from worker.dst.pipeline import DstMesh, bbox_diagonal, simplification_warnings, topo_deflection
 from worker.dst.planes import plan_planes
-from worker.dst.reference import exact_sections
+from worker.dst.reference import closed_length, exact_sections
 from worker.dst.step_io import LoadedPart, solid_volume
 
 REPORT_VERSION = "1.0"
@@ -51,48 +51,13 @@ Progress = Callable[[str, float], None]
 
 
 # --- conventional baselines ------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Preset:
-    linear: float  # BRepMesh linear deflection, mm
-    angular: float  # BRepMesh angular deflection, rad
-    source: str
-
-
-BASELINE_PRESETS: dict[str, Preset] = {
-    "occt_fast": Preset(0.085, 0.5, "paper Table 1 'fast' (angular: OCCT's default 0.5 rad)"),
-    "occt_high_quality": Preset(0.037, 0.5, "paper Table 1 'high quality' (angular: OCCT's default 0.5 rad)"),
-    "occt_reference": Preset(0.00576, 0.5, "paper Table 1 'reference' (angular: OCCT's default 0.5 rad)"),
-    "prusaslicer": Preset(0.005, 1.0, "PrusaSlicer 2.5 STEP import (OCCTWrapper.cpp)"),
-    "bambu_orca": Preset(0.003, 0.5, "Bambu Studio / OrcaSlicer STEP import (Format/STEP.cpp)"),
-    "prusaslicer_high": Preset(0.001, 0.25, "PrusaSlicer 'High' STEP import (LoadStepDialog.cpp)"),
-}
-DEFAULT_BASELINES = ("occt_fast", "occt_high_quality", "prusaslicer")
-BaselineName = Literal[
-    "occt_fast", "occt_high_quality", "occt_reference", "prusaslicer", "bambu_orca", "prusaslicer_high"
-]
-
 # the exact reference: much finer than any mesh it judges
 REFERENCE_CHORD_MM = 1e-3
 REFERENCE_SEGMENT_MM = 2.0
 # Cura drops section loops shorter than this (minimum_polygon_circumference default)
 CURA_MIN_CIRCUMFERENCE_MM = 1.0
-VOLUME_WARN_REL = 0.01
-MEASURE_THREADS = 2  # a mesh enclosing 1% more or less than the solid is worth a warning
-
-
-def parse_baselines(names: Sequence[str] | str | None) -> tuple[str, ...]:
-    """Baseline preset names from a list or a comma-separated string ('none' or '' for none)."""
-    if names is None:
-        return DEFAULT_BASELINES
-    if isinstance(names, str):
-        names = [n.strip() for n in names.split(",")]
-    names = [n for n in names if n and n != "none"]
-    unknown = [n for n in names if n not in BASELINE_PRESETS]
-    if unknown:
-        raise InvalidParameters(
-            f"unknown baseline {', '.join(unknown)}; choose from {', '.join(BASELINE_PRESETS)} or 'none'"
-        )
-    return tuple(dict.fromkeys(names))
+VOLUME_WARN_REL = 0.01  # a mesh enclosing 1% more or less than the solid is worth a warning
+MEASURE_THREADS = 2
 
 
 def conventional_mesh(part: LoadedPart, preset: Preset) -> tuple[np.ndarray, np.ndarray]:
@@ -267,9 +232,7 @@ def build_report(
     report("exact sections", 0.0)
     t = time.perf_counter()
     diag, _ = bbox_diagonal(part)
-    deflection = 0.5 * min(
-        C.TOPO_DEFLECTION_MAX_MM, max(C.TOPO_DEFLECTION_MIN_MM, C.TOPO_DEFLECTION_REL * diag)
-    )
+    deflection = 0.5 * topo_deflection(diag)  # finer than the DST build's: its own topology
     chord = min(REFERENCE_CHORD_MM, 0.1 * params.chord_error)
     # plane heights: the DST mesh's own (identical by construction), else planned from the exact height
     if dst is not None:
@@ -357,7 +320,7 @@ def build_report(
             f"(the exact section a few micrometres above the plane; every mesh cut with vertices on the "
             "plane counting as below it), which is what a slicer keeping the outline above the face sees"
         )
-    small = [(j, _loop_length(p)) for j, ls in enumerate(ref.loops) for p in ls]
+    small = [(j, closed_length(p)) for j, ls in enumerate(ref.loops) for p in ls]
     small = [(j, length) for j, length in small if length < CURA_MIN_CIRCUMFERENCE_MM]
     if small:
         j, length = min(small, key=lambda x: x[1])
@@ -535,7 +498,3 @@ def xy_box(part: LoadedPart) -> tuple[tuple[float, float], tuple[float, float]]:
     BRepBndLib.AddOptimal_s(part.compound, box, False, False)
     lo, hi = box.CornerMin().Coord(), box.CornerMax().Coord()
     return (lo[0], lo[1]), (hi[0], hi[1])
-
-
-def _loop_length(p: np.ndarray) -> float:
-    return float(np.linalg.norm(np.roll(p, -1, axis=0) - p, axis=1).sum())

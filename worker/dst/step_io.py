@@ -27,9 +27,9 @@ from OCP.TopExp import TopExp, TopExp_Explorer
 from OCP.TopoDS import TopoDS, TopoDS_Compound, TopoDS_Shape, TopoDS_Solid
 
 from worker.dst.errors import EmptyGeometryError, NotASolidError, StepReadError
+from worker.dst.sniff import SNIFF_BYTES, sniff_step
 
 # Part 21 files start with this keyword (ISO 10303-21 section 5); checked before OCCT sees the file.
-_P21_MAGIC = b"ISO-10303-21"
 SEWING_TOL_MM = 1e-3  # gaps up to 1 um between open shells' edges are closed by sewing
 
 
@@ -53,11 +53,6 @@ class LoadedPart:
         return comp
 
 
-def sniff_step(head: bytes) -> bool:
-    """True if ``head`` (the first bytes of a file) starts like an ISO 10303-21 file."""
-    return head.lstrip(b"\xef\xbb\xbf \t\r\n").upper().startswith(_P21_MAGIC)
-
-
 def read_step(path: str | os.PathLike[str]) -> LoadedPart:
     """Read ``path`` and return its closed solids.
 
@@ -73,7 +68,7 @@ def read_step(path: str | os.PathLike[str]) -> LoadedPart:
     path = os.fspath(path)
     try:
         with open(path, "rb") as fh:
-            head = fh.read(256)
+            head = fh.read(SNIFF_BYTES)
     except OSError as exc:
         raise StepReadError(f"cannot open {os.path.basename(path)}: {exc.strerror}") from None
     if not head:

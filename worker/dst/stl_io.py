@@ -9,7 +9,7 @@ from typing import BinaryIO
 import numpy as np
 
 CHUNK_TRIANGLES = 65_536
-_STL_DTYPE = np.dtype([("normal", "<f4", (3,)), ("v", "<f4", (3, 3)), ("attr", "<u2")])
+STL_RECORD = np.dtype([("normal", "<f4", (3,)), ("v", "<f4", (3, 3)), ("attr", "<u2")])
 
 
 def write_stl(
@@ -58,7 +58,7 @@ def _write_binary(fh: BinaryIO, v: np.ndarray, t: np.ndarray, name: str) -> None
     fh.write(struct.pack("<I", len(t)))
     for i in range(0, len(t), CHUNK_TRIANGLES):
         tri_xyz = v[t[i : i + CHUNK_TRIANGLES]].astype(np.float64)
-        rec = np.zeros(len(tri_xyz), dtype=_STL_DTYPE)
+        rec = np.zeros(len(tri_xyz), dtype=STL_RECORD)
         rec["normal"] = _normals(tri_xyz)
         rec["v"] = v[t[i : i + CHUNK_TRIANGLES]]
         fh.write(rec.tobytes())

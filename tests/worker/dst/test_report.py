@@ -17,10 +17,11 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from tests.worker.dst.meshcheck import occt_section_points
+from worker.dst.baselines import BASELINE_PRESETS, parse_baselines
 from worker.dst.params import SliceParams
 from worker.dst.pipeline import slice_step
 from worker.dst.reference import exact_sections, occt_sections
-from worker.dst.report import BASELINE_PRESETS, MeshInput, Report, build_report, parse_baselines
+from worker.dst.report import MeshInput, Report, build_report
 from worker.dst.step_io import read_step, solid_volume
 
 R = 20.0
