@@ -24,8 +24,8 @@ from OCP.GeomAbs import (
 )
 from scipy.interpolate import NdBSpline
 
-# (u, v) -> (P, Pu, Pv), each (n, 3)
-Evaluator = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
+# (u, v, derivatives) -> (P, Pu, Pv), each (n, 3); Pu and Pv may be None when derivatives is False
+Evaluator = Callable[[np.ndarray, np.ndarray, bool], tuple[np.ndarray, np.ndarray | None, np.ndarray | None]]
 
 
 def _frame(ax3) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -43,7 +43,7 @@ def evaluator(ad: BRepAdaptor_Surface) -> Evaluator | None:
     if kind == GeomAbs_Plane:
         o, x, y, _ = _frame(ad.Plane().Position())
 
-        def plane(u, v):
+        def plane(u, v, derivatives=True):
             n = len(u)
             return o + u[:, None] * x + v[:, None] * y, np.tile(x, (n, 1)), np.tile(y, (n, 1))
 
@@ -84,7 +84,7 @@ def _revolution(ax3, profile) -> Evaluator:
     """Surface of revolution about ``ax3``'s z axis with meridian ``profile(v) -> (rho, h, rho', h')``."""
     o, x, y, z = _frame(ax3)
 
-    def evaluate(u, v):
+    def evaluate(u, v, derivatives=True):
         c, s = np.cos(u)[:, None], np.sin(u)[:, None]
         radial, tangent = c * x + s * y, -s * x + c * y
         rho, h, drho, dh = (a[:, None] for a in profile(v))
@@ -113,13 +113,16 @@ def _bspline(ad: BRepAdaptor_Surface) -> Evaluator:
         coef = poles
     spline = NdBSpline((tu, tv), coef, (bs.UDegree(), bs.VDegree()), extrapolate=True)
 
-    def evaluate(u, v):
+    def evaluate(u, v, derivatives=True):
         xi = np.stack([u, v], axis=1)
-        a, au, av = spline(xi), spline(xi, nu=(1, 0)), spline(xi, nu=(0, 1))
+        a = spline(xi)
+        p = a[:, :3] / a[:, 3:4] if rational else a
+        if not derivatives:
+            return p, None, None
+        au, av = spline(xi, nu=(1, 0)), spline(xi, nu=(0, 1))
         if not rational:
             return a, au, av
         w_, wu, wv = a[:, 3:4], au[:, 3:4], av[:, 3:4]
-        p = a[:, :3] / w_
         return p, (au[:, :3] - p * wu) / w_, (av[:, :3] - p * wv) / w_
 
     return evaluate

@@ -10,11 +10,19 @@ def edge_defects(tris: np.ndarray, n_vertices: int) -> tuple[int, int]:
 
     A directed edge is open when its reverse is missing, non-manifold when it occurs more than once.
     """
-    d = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
-    key = d[:, 0] * n_vertices + d[:, 1]
-    rkey = d[:, 1] * n_vertices + d[:, 0]
-    uniq, counts = np.unique(key, return_counts=True)
-    return int((~np.isin(rkey, uniq)).sum()), int((counts > 1).sum())
+    if len(tris) == 0:
+        return 0, 0
+    a = tris.ravel()
+    b = tris[:, [1, 2, 0]].ravel()
+    key = np.sort(a * n_vertices + b)  # directed edges a->b
+    rkey = np.sort(b * n_vertices + a)  # their reverses
+    same = key[1:] == key[:-1]
+    # each run of equal keys counts once
+    nonmanifold = int(np.count_nonzero(same[1:] & ~same[:-1])) + int(same[:1].sum())
+    if nonmanifold == 0 and np.array_equal(key, rkey):
+        return 0, 0
+    idx = np.minimum(np.searchsorted(key, rkey), len(key) - 1)
+    return int(np.count_nonzero(key[idx] != rkey)), nonmanifold
 
 
 def signed_volume(xyz: np.ndarray, tris: np.ndarray) -> float:

@@ -20,7 +20,7 @@ from worker.dst.params import SliceParams
 from worker.dst.planes import PlanePlan, plan_planes
 from worker.dst.sampling import RingSampler, VertexPool
 from worker.dst.sections import cut_topology
-from worker.dst.step_io import LoadedPart, read_step, solid_volume
+from worker.dst.step_io import LoadedPart, read_step
 from worker.dst.stl_io import write_stl
 from worker.dst.tessellate import tessellate_solid
 from worker.dst.topomesh import build_topomesh
@@ -119,7 +119,7 @@ def slice_part(
 
     pool = VertexPool()
     flat_planes: set[int] = set()
-    all_tris: list[tuple[int, int, int]] = []
+    all_tris: list[np.ndarray] = []
     stats: dict = {"solids": len(part.solids), "planes": len(planes), "height_mm": height}
     sampling_totals = {
         "newton_solves": 0,
@@ -142,7 +142,7 @@ def slice_part(
         )
         tris, tstats = tessellate_solid(sampler)
         timings["tessellate"] = timings.get("tessellate", 0.0) + time.perf_counter() - t
-        all_tris.extend(tris)
+        all_tris.append(tris)
         for k, v in tstats.items():
             stats[k] = stats.get(k, 0) + v
         for k in sampling_totals:
@@ -157,9 +157,9 @@ def slice_part(
     stats.update(sampling_totals)
 
     report("checking mesh", 0.95)
-    vertices = np.asarray(pool.xyz, dtype=np.float64).reshape(-1, 3)
-    vertex_plane = np.asarray(pool.plane, dtype=np.int64)
-    triangles = np.asarray(all_tris, dtype=np.int64).reshape(-1, 3)
+    vertices = pool.xyz.copy()
+    vertex_plane = pool.plane.copy()
+    triangles = np.concatenate(all_tris)
     vertices[:, 2] -= zmin
     ring = vertex_plane >= 0
     # exactly the float32 height the section was computed at (and that the STL will hold)
@@ -187,7 +187,6 @@ def slice_part(
     stats["triangles"] = len(triangles)
     stats["vertices"] = len(vertices)
     stats["ring_vertices"] = int(ring.sum())
-    stats["exact_volume_mm3"] = float(sum(solid_volume(s) for s in part.solids))
     stats["mesh_volume_mm3"] = volume
     timings["total"] = time.perf_counter() - t0
     stats["timings_s"] = {k: round(v, 4) for k, v in timings.items()}

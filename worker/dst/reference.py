@@ -106,7 +106,7 @@ def exact_sections(
         rings = sampler.free_loops(np.flatnonzero(free).tolist())
         for li in np.flatnonzero(~free).tolist():
             rings[li] = sampler.pinned_loop(li)
-        xyz = np.asarray(pool.xyz, dtype=np.float64).reshape(-1, 3)
+        xyz = pool.xyz
         for li, ids in rings.items():
             j = int(topo.loops[li][0])
             loops[j].append(xyz[ids, :2].copy())

@@ -44,7 +44,7 @@ from worker.dst.params import SliceParams
 from worker.dst.pipeline import DstMesh, bbox_diagonal, simplification_warnings, topo_deflection
 from worker.dst.planes import plan_planes
 from worker.dst.reference import closed_length, exact_sections
-from worker.dst.step_io import LoadedPart, solid_volume
+from worker.dst.step_io import LoadedPart
 
 REPORT_VERSION = "1.0"
 Progress = Callable[[str, float], None]
@@ -254,7 +254,7 @@ def build_report(
     ref_seconds = time.perf_counter() - t
     n_planes = len(heights)
     loops_exact = np.array([len(ls) for ls in ref.loops], dtype=np.int64)
-    exact_volume = float(sum(solid_volume(s) for s in part.solids))
+    exact_volume = part.volume_mm3
 
     todo: list[MeshInput] = []
     if dst is not None:

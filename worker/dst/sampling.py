@@ -49,17 +49,52 @@ TRIM_TOL_MM = 1e-6
 MAX_REFINE_ROUNDS = 40  # halving a segment 24 times takes 1 m down to 60 nm: still failing means broken
 
 
-@dataclass
 class VertexPool:
-    """Output vertices in world millimetres; ``plane`` is the plane index of ring vertices, else -1."""
+    """Output vertices in world millimetres; ``plane`` is the plane index of ring vertices, else -1.
 
-    xyz: list[tuple[float, float, float]] = field(default_factory=list)
-    plane: list[int] = field(default_factory=list)
+    A growable numpy buffer: ``xyz`` and ``plane`` are views of the vertices added so far.
+    """
+
+    def __init__(self, capacity: int = 4096):
+        self._xyz = np.empty((capacity, 3), dtype=np.float64)
+        self._plane = np.empty(capacity, dtype=np.int64)
+        self.n = 0
+
+    @property
+    def xyz(self) -> np.ndarray:
+        return self._xyz[: self.n]
+
+    @property
+    def plane(self) -> np.ndarray:
+        return self._plane[: self.n]
+
+    def __len__(self) -> int:
+        return self.n
+
+    def _reserve(self, extra: int) -> None:
+        need = self.n + extra
+        if need > len(self._plane):
+            cap = max(need, 2 * len(self._plane))
+            self._xyz = np.concatenate([self._xyz[: self.n], np.empty((cap - self.n, 3))])
+            self._plane = np.concatenate([self._plane[: self.n], np.empty(cap - self.n, dtype=np.int64)])
 
     def add(self, p: tuple[float, float, float], plane: int) -> int:
-        self.xyz.append(p)
-        self.plane.append(plane)
-        return len(self.xyz) - 1
+        self._reserve(1)
+        self._xyz[self.n] = p
+        self._plane[self.n] = plane
+        self.n += 1
+        return self.n - 1
+
+    def extend(self, xy: np.ndarray, z: np.ndarray, plane: np.ndarray) -> np.ndarray:
+        """Add ring vertices (x, y) at heights ``z`` on planes ``plane``; returns their ids."""
+        k = len(xy)
+        self._reserve(k)
+        n0 = self.n
+        self._xyz[n0 : n0 + k, :2] = xy
+        self._xyz[n0 : n0 + k, 2] = z
+        self._plane[n0 : n0 + k] = plane
+        self.n += k
+        return np.arange(n0, self.n, dtype=np.int64)
 
 
 @dataclass
@@ -340,48 +375,44 @@ class RingSampler:
         run_face = np.array([r.face for r in runs])
         run_step = np.array([r.max_step for r in runs])
         run_z = np.array([r.zc for r in runs])
+        run_plane = np.array([r.plane for r in runs], dtype=np.int64)
 
         def solve(run_idx: np.ndarray, s: np.ndarray) -> np.ndarray:
             g = s + shift[run_idx]
             u, v = np.interp(g, big_s, big_u), np.interp(g, big_s, big_v)
             return self._newton(run_face[run_idx], u, v, run_z[run_idx], run_step[run_idx])
 
-        # Initial points at equal arc length.
-        run_of, s_of = [], []
-        for ri, r in enumerate(runs):
-            if r.n_seg > 1:
-                k = np.arange(1, r.n_seg)
-                run_of.append(np.full(len(k), ri))
-                s_of.append(r.s[-1] * k / r.n_seg)
-        pts: list[list[tuple[float, np.ndarray | None, int]]] = [
-            [(0.0, np.array(self.pool.xyz[r.start]), r.start)] for r in runs
-        ]
-        if run_of:
-            ri_all, s_all = np.concatenate(run_of), np.concatenate(s_of)
-            xyz, ok = solve(ri_all, s_all)
-            for ri, s, p in zip(ri_all[ok].tolist(), s_all[ok].tolist(), xyz[ok], strict=True):
-                pts[ri].append((s, p, -1))
-        for p in pts:
-            p.sort(key=lambda item: item[0])
-        for ri, r in enumerate(runs):
-            pts[ri].append((float(r.s[-1]), np.array(self.pool.xyz[r.end]), r.end))
+        # Every point of every run in flat arrays (run, arc length, xyz, vertex id or -1 for a new
+        # point); segments to check are pairs of points, refined level by level, all runs together.
+        n_runs = len(runs)
+        first = np.array([r.start for r in runs], dtype=np.int64)
+        last = np.array([r.end for r in runs], dtype=np.int64)
+        n_inner = np.array([max(r.n_seg - 1, 0) for r in runs], dtype=np.int64)
+        seed_run = np.repeat(np.arange(n_runs), n_inner)
+        k = np.arange(len(seed_run)) - np.repeat(np.cumsum(n_inner) - n_inner, n_inner) + 1
+        n_seg = np.array([r.n_seg for r in runs], dtype=np.float64)
+        seed_s = lengths[seed_run] * k / n_seg[seed_run]
+        seed_xyz, seed_ok = solve(seed_run, seed_s) if len(seed_run) else (np.empty((0, 3)), np.empty(0, bool))
+        seed_run, seed_s, seed_xyz = seed_run[seed_ok], seed_s[seed_ok], seed_xyz[seed_ok]
+        pool_xyz = self.pool.xyz
+        run_all = [np.arange(n_runs), seed_run, np.arange(n_runs)]
+        s_all = [np.zeros(n_runs), seed_s, lengths]
+        xyz_all = [pool_xyz[first], seed_xyz, pool_xyz[last]]
+        vid_all = [first, np.full(len(seed_run), -1, dtype=np.int64), last]
 
-        # Segments to check: (run, sa, pa, sb, pb); refined level by level, all runs together.
-        pending = [
-            (ri, a[0], a[1], b[0], b[1])
-            for ri, p in enumerate(pts)
-            for a, b in zip(p[:-1], p[1:], strict=True)
-        ]
+        # the first segments: consecutive points of each run (starts, seeds and ends sorted by run, s)
+        ri, s_, xyz = np.concatenate(run_all), np.concatenate(s_all), np.concatenate(xyz_all)
+        order = np.lexsort((s_, ri))
+        ri, s_, xyz = ri[order], s_[order], xyz[order]
+        pair = np.flatnonzero(ri[1:] == ri[:-1])
+        pending = (ri[pair], s_[pair], s_[pair + 1], xyz[pair], xyz[pair + 1])
+
         L, e = self.seg_len, self.chord
         worst = ""
         for _ in range(MAX_REFINE_ROUNDS):
-            if not pending:
+            ri, sa, sb, pa, pb = pending
+            if not len(ri):
                 break
-            ri = np.array([q[0] for q in pending])
-            sa = np.array([q[1] for q in pending])
-            sb = np.array([q[3] for q in pending])
-            pa = np.array([q[2] for q in pending])
-            pb = np.array([q[4] for q in pending])
             mid, mid_ok = solve(ri, 0.5 * (sa + sb))
             length = np.linalg.norm(pb - pa, axis=1)
             sag = np.where(mid_ok, _point_segment_distance(np.nan_to_num(mid), pa, pb), 0.0)
@@ -414,61 +445,66 @@ class RingSampler:
                 f" (face {run_face[ri[q]] + 1}: sag {sag[q]:.3g} mm over {length[q]:.3g} mm, "
                 f"s {sa[q]:.6g}..{sb[q]:.6g} of {lengths[ri[q]]:.6g})"
             )
+            b_idx = np.flatnonzero(bad)
             m = np.maximum.reduce(
                 [
-                    np.full(len(pending), 2),
-                    np.ceil(length / (L * SEGMENT_FILL)).astype(int),
-                    np.ceil(np.sqrt(sag / e) * 1.05).astype(int),
+                    np.full(len(b_idx), 2),
+                    np.ceil(length[b_idx] / (L * SEGMENT_FILL)).astype(int),
+                    np.ceil(np.sqrt(sag[b_idx] / e) * 1.05).astype(int),
                 ]
             )
             m = np.minimum(m, MAX_SUBDIVISION)
-            b_idx = np.flatnonzero(bad)
-            new_run, new_s = [], []
-            for q in b_idx.tolist():
-                k = np.arange(1, m[q])
-                new_run.append(np.full(len(k), ri[q]))
-                new_s.append(sa[q] + (sb[q] - sa[q]) * k / m[q])
-            nr, ns = np.concatenate(new_run), np.concatenate(new_s)
-            new_xyz, new_ok = solve(nr, ns)
-            for r_, s_, p_ in zip(nr[new_ok].tolist(), ns[new_ok].tolist(), new_xyz[new_ok], strict=True):
-                pts[r_].append((s_, p_, -1))
-            nxt = []
-            pos = 0
-            for q in b_idx.tolist():
-                chain = [(sa[q], pa[q])]
-                for _k in range(m[q] - 1):
-                    if new_ok[pos]:
-                        chain.append((ns[pos], new_xyz[pos]))
-                    pos += 1
-                chain.append((sb[q], pb[q]))
-                if len(chain) == 2:  # no new point could be placed: keep it as a tangent segment
-                    self.stats.tangent_segments += 1
-                    continue
-                nxt.extend(
-                    (ri[q], x[0], x[1], y[0], y[1]) for x, y in zip(chain[:-1], chain[1:], strict=True)
-                )
-            pending = nxt
+            # m - 1 new points at equal steps of s inside each bad segment
+            seg = np.repeat(np.arange(len(b_idx)), m - 1)
+            k = np.arange(len(seg)) - np.repeat(np.cumsum(m - 1) - (m - 1), m - 1) + 1
+            bq = b_idx[seg]
+            ns = sa[bq] + (sb[bq] - sa[bq]) * k / m[seg]
+            new_xyz, new_ok = solve(ri[bq], ns)
+            run_all.append(ri[bq][new_ok])
+            s_all.append(ns[new_ok])
+            xyz_all.append(new_xyz[new_ok])
+            vid_all.append(np.full(int(new_ok.sum()), -1, dtype=np.int64))
+            # the chains start, new points, end of each bad segment; consecutive members are the
+            # segments of the next round
+            nb = len(b_idx)
+            c_grp = np.concatenate([np.arange(nb), seg[new_ok], np.arange(nb)])
+            c_key = np.concatenate([np.zeros(nb), k[new_ok], m.astype(np.float64)])
+            c_s = np.concatenate([sa[b_idx], ns[new_ok], sb[b_idx]])
+            c_xyz = np.concatenate([pa[b_idx], new_xyz[new_ok], pb[b_idx]])
+            order = np.lexsort((c_key, c_grp))
+            c_grp, c_s, c_xyz = c_grp[order], c_s[order], c_xyz[order]
+            # no new point could be placed: keep it as a tangent segment
+            self.stats.tangent_segments += int((np.bincount(seg[new_ok], minlength=nb) == 0).sum())
+            pair = np.flatnonzero(c_grp[1:] == c_grp[:-1])
+            pair = pair[np.bincount(seg[new_ok], minlength=nb)[c_grp[pair]] > 0]
+            pending = (ri[b_idx][c_grp[pair]], c_s[pair], c_s[pair + 1], c_xyz[pair], c_xyz[pair + 1])
         else:
             raise TessellationError(f"section curves cannot meet the chord budget{worst}")
 
-        out = []
-        for r, p in zip(runs, pts, strict=True):
-            p.sort(key=lambda item: item[0])
-            if r.moved:
-                p = [
-                    p[0],
-                    *(
-                        item
-                        for item in p[1:-1]
-                        if not _near_moved(r, item[1]) or self._inside_face(r, item[1])
-                    ),
-                    p[-1],
-                ]
-            ids = []
-            for _s, xyz, vid in p:
-                ids.append(vid if vid >= 0 else self.pool.add((float(xyz[0]), float(xyz[1]), r.zc), r.plane))
-            out.append(ids)
-        return out
+        ri, s_ = np.concatenate(run_all), np.concatenate(s_all)
+        xyz, vid = np.concatenate(xyz_all), np.concatenate(vid_all)
+        order = np.lexsort((s_, ri))
+        ri, xyz, vid = ri[order], xyz[order], vid[order]
+        # points near a run end that moved far from its topology crossing must lie inside the face
+        moved_runs = [i for i, r in enumerate(runs) if r.moved]
+        if moved_runs:
+            bounds = np.searchsorted(ri, np.arange(n_runs + 1))
+            for r_i in moved_runs:
+                r = runs[r_i]
+                q = bounds[r_i] + np.flatnonzero(vid[bounds[r_i] : bounds[r_i + 1]] < 0)
+                near = np.zeros(len(q), dtype=bool)
+                for end, radius in r.moved:
+                    near |= np.linalg.norm(xyz[q, :2] - end[:2], axis=1) <= radius
+                for k in q[near].tolist():
+                    if not self._inside_face(r, xyz[k]):
+                        vid[k] = -2
+        keep = vid != -2
+        ri, xyz, vid = ri[keep], xyz[keep], vid[keep]
+        new = np.flatnonzero(vid < 0)
+        vid[new] = self.pool.extend(xyz[new, :2], run_z[ri[new]], run_plane[ri[new]])
+        bounds = np.searchsorted(ri, np.arange(n_runs + 1))
+        ids = vid.tolist()
+        return [ids[bounds[i] : bounds[i + 1]] for i in range(n_runs)]
 
     def _inside_face(self, run: _Run, xyz) -> bool:
         """Is a point solved on the run's surface inside the face's trimmed region? Newton works on the
@@ -487,8 +523,12 @@ class RingSampler:
         far = gap > SUSPECT_DEFLECTIONS * self.mesh.deflection
         return tuple((exact_ends[k].copy(), float(gap[k]) + self.seg_len) for k in np.flatnonzero(far))
 
-    def _d1(self, fa: np.ndarray, ua: np.ndarray, va: np.ndarray, ads, p, du, dv) -> np.ndarray:
-        """(n, 9) rows P, Pu, Pv: closed forms for elementary faces, OCCT's D1 for the others."""
+    def _d1(
+        self, fa: np.ndarray, ua: np.ndarray, va: np.ndarray, ads, p, du, dv, derivatives: bool = True
+    ) -> np.ndarray:
+        """(n, 9) rows P, Pu, Pv: closed forms for elementary faces, OCCT's D1 for the others.
+
+        With ``derivatives=False`` only P is guaranteed (the B-spline evaluator skips Pu and Pv)."""
         res = np.empty((len(fa), 9))
         an = self._analytic[fa]
         other = np.flatnonzero(~an)
@@ -505,8 +545,10 @@ class RingSampler:
             bounds = np.append(starts, len(order))
             for k, f in enumerate(faces.tolist()):
                 sel = order[bounds[k] : bounds[k + 1]]
-                P, Pu, Pv = self._evals[f](ua[sel], va[sel])
-                res[sel, 0:3], res[sel, 3:6], res[sel, 6:9] = P, Pu, Pv
+                P, Pu, Pv = self._evals[f](ua[sel], va[sel], derivatives)
+                res[sel, 0:3] = P
+                if Pu is not None:
+                    res[sel, 3:6], res[sel, 6:9] = Pu, Pv
         return res
 
     def _newton(
@@ -531,10 +573,12 @@ class RingSampler:
         u, v = u.astype(np.float64).copy(), v.astype(np.float64).copy()
         p, du, dv = gp_Pnt(), gp_Vec(), gp_Vec()
         ads = self._ads
-        for _ in range(NEWTON_MAX_ITER):
+        for it in range(NEWTON_MAX_ITER):
             if not act.size:
                 break
-            res = self._d1(fidx[act], u[act], v[act], ads, p, du, dv)
+            # After the first step most points have converged: test them on P alone (a third of
+            # the cost of P, Pu, Pv for a B-spline) and differentiate only where another step is due.
+            res = self._d1(fidx[act], u[act], v[act], ads, p, du, dv, derivatives=it == 0)
             f_ = res[:, 2] - zc[act]
             done = np.abs(f_) < LEVEL_TOL_MM
             out[act[done]] = res[done, :3]
@@ -542,6 +586,8 @@ class RingSampler:
             act, res, f_ = act[keep], res[keep], f_[keep]
             if not act.size:
                 break
+            if it:
+                res = self._d1(fidx[act], u[act], v[act], ads, p, du, dv)
             su_, sv_ = res[:, 3:6], res[:, 6:9]
             e_ = np.einsum("ij,ij->i", su_, su_)
             f2 = np.einsum("ij,ij->i", su_, sv_)
@@ -571,13 +617,13 @@ def _point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.n
     return np.linalg.norm(p - (a + t[:, None] * ab), axis=1)
 
 
-def _near_moved(run: _Run, xyz) -> bool:
-    p = np.array([xyz[0], xyz[1], run.zc])
-    return any(float(np.linalg.norm(p - end)) <= radius for end, radius in run.moved)
-
-
 def _dedupe_cyclic(vids: list[int], pool: VertexPool) -> list[int]:
     """Drop consecutive repeats (ids, or points closer than 1 nm) in a closed ring."""
+    if len(vids) > 1:
+        p = pool.xyz[vids]
+        step = np.abs(p - np.roll(p, 1, axis=0)).max(axis=1)
+        if step.min() >= 1e-9:  # no repeats (the common case)
+            return list(vids)
     out: list[int] = []
     for v in vids:
         if out and (v == out[-1] or _close(pool.xyz[v], pool.xyz[out[-1]])):

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
+from functools import cached_property
 
 from OCP.BRep import BRep_Builder
 from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeSolid, BRepBuilderAPI_Sewing
@@ -51,6 +52,11 @@ class LoadedPart:
         for s in self.solids:
             builder.Add(comp, s)
         return comp
+
+    @cached_property
+    def volume_mm3(self) -> float:
+        """Exact volume of all solids (see ``solid_volume``); computed on first use."""
+        return float(sum(solid_volume(s) for s in self.solids))
 
 
 def read_step(path: str | os.PathLike[str]) -> LoadedPart:

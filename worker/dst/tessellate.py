@@ -21,8 +21,8 @@ from worker.dst.sampling import RingSampler, VertexPool
 from worker.dst.sections import SectionTopology
 
 
-def tessellate_solid(sampler: RingSampler) -> tuple[list[tuple[int, int, int]], dict]:
-    """Triangles (vertex ids into ``sampler.pool``) of one solid, and counts for the report."""
+def tessellate_solid(sampler: RingSampler) -> tuple[np.ndarray, dict]:
+    """(F, 3) triangles (vertex ids into ``sampler.pool``) of one solid, and counts for the report."""
     topo: SectionTopology = sampler.topo
     annulus = topo.comp_is_annulus
     free = annulus[topo.loop_below] & annulus[topo.loop_above]
@@ -30,10 +30,11 @@ def tessellate_solid(sampler: RingSampler) -> tuple[list[tuple[int, int, int]], 
     for li in np.flatnonzero(~free).tolist():
         rings[li] = sampler.pinned_loop(li)
 
-    out: list[tuple[int, int, int]] = []
+    strips = [np.empty((0, 3), dtype=np.int64)]
     for comp in np.flatnonzero(annulus).tolist():
         (lb,), (lt,) = topo.comp_bottom[comp], topo.comp_top[comp]
-        out.extend(zipper(rings[lb], rings[lt], sampler.pool))
+        strips.append(zipper(rings[lb], rings[lt], sampler.pool))
+    out: list[tuple[int, int, int]] = []
 
     kept = ~annulus[topo.piece_comp]
     pieces = np.flatnonzero(kept)
@@ -54,7 +55,8 @@ def tessellate_solid(sampler: RingSampler) -> tuple[list[tuple[int, int, int]], 
     # A ring that degenerates to one point (a dome top exactly on a plane) makes zipper triangles with
     # a repeated corner. Such a triangle adds the edges a->b and b->a, which cancel: dropping it keeps
     # the mesh closed.
-    out = [t for t in out if t[0] != t[1] and t[1] != t[2] and t[2] != t[0]]
+    tris = np.concatenate([*strips, np.asarray(out, dtype=np.int64).reshape(-1, 3)])
+    tris = tris[(tris[:, 0] != tris[:, 1]) & (tris[:, 1] != tris[:, 2]) & (tris[:, 2] != tris[:, 0])]
     stats = {
         "loops": len(topo.loops),
         "free_loops": int(free.sum()),
@@ -62,28 +64,32 @@ def tessellate_solid(sampler: RingSampler) -> tuple[list[tuple[int, int, int]], 
         "kept_components": int((~annulus).sum()),
         "kept_pieces": n_kept_pieces,
     }
-    return out, stats
+    return tris, stats
 
 
-def zipper(bottom: list[int], top: list[int], pool: VertexPool) -> list[tuple[int, int, int]]:
+def zipper(bottom: list[int], top: list[int], pool: VertexPool) -> np.ndarray:
     """Triangulate the strip between two closed rings oriented alike (material on the left)."""
-    pb = np.array([pool.xyz[v] for v in bottom])
-    pt = np.array([pool.xyz[v] for v in top])
+    pb = pool.xyz[bottom]
+    pt = pool.xyz[top]
     j0 = int(np.argmin(np.sum((pt[:, :2] - pb[0, :2]) ** 2, axis=1)))
     top = top[j0:] + top[:j0]
     pt = np.roll(pt, -j0, axis=0)
     ub = _closed_arclength(pb)
     ut = _closed_arclength(pt)
     m, n = len(bottom), len(top)
-    tris = []
-    i = j = 0
-    while i < m or j < n:
-        if i < m and (j >= n or ub[i + 1] <= ut[j + 1]):
-            tris.append((bottom[i], bottom[(i + 1) % m], top[j % n]))
-            i += 1
-        else:
-            tris.append((bottom[i % m], top[(j + 1) % n], top[j]))
-            j += 1
+    # Advance on the ring whose next vertex comes first by normalised arc length (the bottom one on
+    # a tie): a stable merge of both rings' arc lengths.
+    is_top = np.concatenate([np.zeros(m, dtype=bool), np.ones(n, dtype=bool)])
+    order = np.argsort(np.concatenate([ub[1:], ut[1:]]), kind="stable")
+    step_top = is_top[order]
+    i = np.cumsum(~step_top) - ~step_top  # bottom steps taken before each step
+    j = np.cumsum(step_top) - step_top  # top steps taken before each step
+    b, t = np.asarray(bottom), np.asarray(top)
+    tris = np.where(
+        step_top[:, None],
+        np.stack([b[i % m], t[(j + 1) % n], t[j % n]], axis=1),
+        np.stack([b[i % m], b[(i + 1) % m], t[j % n]], axis=1),
+    )
     return tris
 
 
@@ -106,7 +112,7 @@ def _piece_triangles(sampler: RingSampler, t: int, k: int) -> list[tuple[int, in
         a, b = tri[i], tri[(i + 1) % 3]
         if s[i] == k:
             vid = sampler.node(a)
-            on = sampler.pool.plane[vid]
+            on = int(sampler.pool.plane[vid])
             poly.append((vid, "in" if on < 0 else f"p{on}"))
             cross_seq.append(-1)
         sa, sb = s[i], s[(i + 1) % 3]
@@ -176,14 +182,14 @@ def _centroid_fan(pool: VertexPool, ids: list[int], plane: int) -> list[tuple[in
     """
     if len(ids) == 3:
         return [(ids[0], ids[1], ids[2])]
-    c = np.mean([pool.xyz[v] for v in ids], axis=0)
+    c = pool.xyz[ids].mean(axis=0)
     cv = pool.add((float(c[0]), float(c[1]), float(c[2])), plane)
     return [(cv, ids[q], ids[(q + 1) % len(ids)]) for q in range(len(ids))]
 
 
 def _collapsed(pool: VertexPool, ids: list[int]) -> bool:
     """True if the closed polygon has no area relative to its perimeter (a path walked there and back)."""
-    p = np.array([pool.xyz[v] for v in ids])
+    p = pool.xyz[ids]
     area = 0.5 * np.linalg.norm(np.cross(p, np.roll(p, -1, axis=0)).sum(axis=0))
     perimeter = np.linalg.norm(p - np.roll(p, -1, axis=0), axis=1).sum()
     return bool(area <= 1e-12 * perimeter**2)

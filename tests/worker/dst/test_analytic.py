@@ -53,6 +53,7 @@ def test_closed_form_matches_occt(kind):
         u = rng.uniform(ad.FirstUParameter(), ad.LastUParameter(), 50)
         v = rng.uniform(max(ad.FirstVParameter(), -50), min(ad.LastVParameter(), 50), 50)
         P, Pu, Pv = ev(u, v)
+        np.testing.assert_array_equal(ev(u, v, False)[0], P)  # the value-only evaluation
         p, du, dv = gp_Pnt(), gp_Vec(), gp_Vec()
         for i in range(50):
             ad.D1(u[i], v[i], p, du, dv)
