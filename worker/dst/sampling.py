@@ -23,7 +23,7 @@ iteration), which keeps the Python overhead per ring vertex to a few microsecond
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from OCP.gp import gp_Pnt, gp_Vec
@@ -392,7 +392,9 @@ class RingSampler:
         k = np.arange(len(seed_run)) - np.repeat(np.cumsum(n_inner) - n_inner, n_inner) + 1
         n_seg = np.array([r.n_seg for r in runs], dtype=np.float64)
         seed_s = lengths[seed_run] * k / n_seg[seed_run]
-        seed_xyz, seed_ok = solve(seed_run, seed_s) if len(seed_run) else (np.empty((0, 3)), np.empty(0, bool))
+        seed_xyz, seed_ok = (
+            solve(seed_run, seed_s) if len(seed_run) else (np.empty((0, 3)), np.empty(0, bool))
+        )
         seed_run, seed_s, seed_xyz = seed_run[seed_ok], seed_s[seed_ok], seed_xyz[seed_ok]
         pool_xyz = self.pool.xyz
         run_all = [np.arange(n_runs), seed_run, np.arange(n_runs)]
