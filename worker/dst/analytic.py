@@ -95,6 +95,10 @@ def _revolution(ax3, profile) -> Evaluator:
 
 def _bspline(ad: BRepAdaptor_Surface) -> Evaluator:
     bs = ad.BSpline()  # a copy with the face location applied
+    # one period of a periodic direction, where parameters beyond it are brought back (the clamped
+    # copy below would extrapolate there instead of wrapping)
+    u_period = (bs.Bounds()[0], bs.UPeriod()) if bs.IsUPeriodic() else None
+    v_period = (bs.Bounds()[2], bs.VPeriod()) if bs.IsVPeriodic() else None
     if bs.IsUPeriodic() or bs.IsVPeriodic():
         bs = bs.Copy()
         if bs.IsUPeriodic():
@@ -114,6 +118,10 @@ def _bspline(ad: BRepAdaptor_Surface) -> Evaluator:
     spline = NdBSpline((tu, tv), coef, (bs.UDegree(), bs.VDegree()), extrapolate=True)
 
     def evaluate(u, v, derivatives=True):
+        if u_period is not None:
+            u = u_period[0] + np.mod(u - u_period[0], u_period[1])
+        if v_period is not None:
+            v = v_period[0] + np.mod(v - v_period[0], v_period[1])
         xi = np.stack([u, v], axis=1)
         a = spline(xi)
         p = a[:, :3] / a[:, 3:4] if rational else a

@@ -26,6 +26,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from OCP.GeomAbs import GeomAbs_Sphere
 from OCP.gp import gp_Pnt, gp_Vec
 
 from worker.dst.analytic import evaluator
@@ -156,6 +157,18 @@ class RingSampler:
         self._ads = [f.ad for f in mesh.faces]
         self._evals = [evaluator(ad) for ad in self._ads]
         self._analytic = np.array([e is not None for e in self._evals], dtype=bool)
+        # each face's (u, v) box, and whether a point beyond it in u or v is certainly off the face: not
+        # in a periodic direction (parameters wrap), nor along a sphere's meridian (v past a pole is
+        # still on the sphere); elsewhere it lies on the surface's extension, not on the B-rep
+        fs = mesh.faces
+        self._uv_box = np.array([(f.u0, f.u1, f.v0, f.v1) for f in fs], dtype=np.float64).reshape(-1, 4)
+        self._box_checked = np.array(
+            [
+                (not f.ad.IsUPeriodic(), not f.ad.IsVPeriodic() and f.ad.GetType() != GeomAbs_Sphere)
+                for f in fs
+            ],
+            dtype=bool,
+        ).reshape(-1, 2)
         uv = mesh.tri_uv
         # (u, v) size of each topology triangle: the scale of a Newton step from a seed
         self.tri_uv_scale = np.max(np.linalg.norm(uv - np.roll(uv, 1, axis=1), axis=2), axis=1) + 1e-12
@@ -211,7 +224,7 @@ class RingSampler:
             za, zb = mesh.xyz[a, 2], mesh.xyz[b, 2]
             frac = min(1.0, max(0.0, (zc - za) / (zb - za))) if zb != za else 0.5
             seed = np.array([[ua + frac * (ub - ua), va + frac * (vb - va)]])
-            pts, ok = self._newton(
+            pts, ok, _ = self._newton(
                 np.array([face]), seed[:, 0], seed[:, 1], zc, np.array([2.0 * self.tri_uv_scale[t]])
             )
             if not ok[0]:
@@ -377,7 +390,7 @@ class RingSampler:
         run_z = np.array([r.zc for r in runs])
         run_plane = np.array([r.plane for r in runs], dtype=np.int64)
 
-        def solve(run_idx: np.ndarray, s: np.ndarray) -> np.ndarray:
+        def solve(run_idx: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             g = s + shift[run_idx]
             u, v = np.interp(g, big_s, big_u), np.interp(g, big_s, big_v)
             return self._newton(run_face[run_idx], u, v, run_z[run_idx], run_step[run_idx])
@@ -392,14 +405,23 @@ class RingSampler:
         k = np.arange(len(seed_run)) - np.repeat(np.cumsum(n_inner) - n_inner, n_inner) + 1
         n_seg = np.array([r.n_seg for r in runs], dtype=np.float64)
         seed_s = lengths[seed_run] * k / n_seg[seed_run]
-        seed_xyz, seed_ok = (
-            solve(seed_run, seed_s) if len(seed_run) else (np.empty((0, 3)), np.empty(0, bool))
+        seed_xyz, seed_ok, seed_uv = (
+            solve(seed_run, seed_s)
+            if len(seed_run)
+            else (np.empty((0, 3)), np.empty(0, bool), np.empty((0, 2)))
         )
-        seed_run, seed_s, seed_xyz = seed_run[seed_ok], seed_s[seed_ok], seed_xyz[seed_ok]
+        seed_run, seed_s, seed_xyz, seed_uv = (
+            seed_run[seed_ok],
+            seed_s[seed_ok],
+            seed_xyz[seed_ok],
+            seed_uv[seed_ok],
+        )
         pool_xyz = self.pool.xyz
         run_all = [np.arange(n_runs), seed_run, np.arange(n_runs)]
         s_all = [np.zeros(n_runs), seed_s, lengths]
         xyz_all = [pool_xyz[first], seed_xyz, pool_xyz[last]]
+        no_uv = np.full((n_runs, 2), np.nan)  # run ends: existing vertices, never checked against the trim
+        uv_all = [no_uv, seed_uv, no_uv]
         vid_all = [first, np.full(len(seed_run), -1, dtype=np.int64), last]
 
         # the first segments: consecutive points of each run (starts, seeds and ends sorted by run, s)
@@ -415,7 +437,7 @@ class RingSampler:
             ri, sa, sb, pa, pb = pending
             if not len(ri):
                 break
-            mid, mid_ok = solve(ri, 0.5 * (sa + sb))
+            mid, mid_ok, _ = solve(ri, 0.5 * (sa + sb))
             length = np.linalg.norm(pb - pa, axis=1)
             sag = np.where(mid_ok, _point_segment_distance(np.nan_to_num(mid), pa, pb), 0.0)
             bad = ((length > L) | (sag > e)) & (length > 1e-9)
@@ -431,14 +453,7 @@ class RingSampler:
             # lies between; keep the segment and report it.
             gap = bad & ((sb - sa) < GAP_SPAN_REL * np.maximum(lengths[ri], 1.0))
             if gap.any():
-                self.stats.tolerance_gaps += int(gap.sum())
-                g = int(np.argmax(np.where(gap, length, -1.0)))
-                if length[g] > self.stats.max_gap_mm:
-                    self.stats.max_gap_mm = float(length[g])
-                    self.stats.max_gap_at = (
-                        f"z={run_z[ri[g]]:.4f} mm, face {run_face[ri[g]] + 1}, from {np.round(pa[g], 4).tolist()} "
-                        f"to {np.round(pb[g], 4).tolist()}"
-                    )
+                self._record_gaps(gap, length, pa, pb, run_z[ri], run_face[ri])
                 bad &= ~gap
             if not bad.any():
                 break
@@ -461,10 +476,11 @@ class RingSampler:
             k = np.arange(len(seg)) - np.repeat(np.cumsum(m - 1) - (m - 1), m - 1) + 1
             bq = b_idx[seg]
             ns = sa[bq] + (sb[bq] - sa[bq]) * k / m[seg]
-            new_xyz, new_ok = solve(ri[bq], ns)
+            new_xyz, new_ok, new_uv = solve(ri[bq], ns)
             run_all.append(ri[bq][new_ok])
             s_all.append(ns[new_ok])
             xyz_all.append(new_xyz[new_ok])
+            uv_all.append(new_uv[new_ok])
             vid_all.append(np.full(int(new_ok.sum()), -1, dtype=np.int64))
             # the chains start, new points, end of each bad segment; consecutive members are the
             # segments of the next round
@@ -484,38 +500,68 @@ class RingSampler:
             raise TessellationError(f"section curves cannot meet the chord budget{worst}")
 
         ri, s_ = np.concatenate(run_all), np.concatenate(s_all)
-        xyz, vid = np.concatenate(xyz_all), np.concatenate(vid_all)
+        xyz, vid, uv = np.concatenate(xyz_all), np.concatenate(vid_all), np.concatenate(uv_all)
         order = np.lexsort((s_, ri))
-        ri, xyz, vid = ri[order], xyz[order], vid[order]
-        # points near a run end that moved far from its topology crossing must lie inside the face
+        ri, xyz, vid, uv = ri[order], xyz[order], vid[order], uv[order]
+        # new points must lie on their face: inside its (u, v) box, and near a run end that moved far
+        # from its topology crossing, inside its trim
+        new = np.flatnonzero(vid < 0)
+        outside = self._off_face_box(run_face[ri[new]], uv[new])
+        vid[new[outside]] = -2
+        self.stats.outside_face_points += int(outside.sum())
         moved_runs = [i for i, r in enumerate(runs) if r.moved]
         if moved_runs:
             bounds = np.searchsorted(ri, np.arange(n_runs + 1))
             for r_i in moved_runs:
                 r = runs[r_i]
-                q = bounds[r_i] + np.flatnonzero(vid[bounds[r_i] : bounds[r_i + 1]] < 0)
+                q = bounds[r_i] + np.flatnonzero(vid[bounds[r_i] : bounds[r_i + 1]] == -1)
                 near = np.zeros(len(q), dtype=bool)
                 for end, radius in r.moved:
                     near |= np.linalg.norm(xyz[q, :2] - end[:2], axis=1) <= radius
                 for k in q[near].tolist():
-                    if not self._inside_face(r, xyz[k]):
+                    if not self._inside_face(r, uv[k]):
                         vid[k] = -2
         keep = vid != -2
         ri, xyz, vid = ri[keep], xyz[keep], vid[keep]
+        if not keep.all():
+            # where points were dropped the segment across them may exceed the budget: no exact point
+            # of this face lies there, so it is a gap of the B-rep (reported with the others)
+            same = ri[1:] == ri[:-1]
+            d = np.where(same, np.linalg.norm(xyz[1:] - xyz[:-1], axis=1), 0.0)
+            self._record_gaps(d > L, d, xyz[:-1], xyz[1:], run_z[ri[:-1]], run_face[ri[:-1]])
         new = np.flatnonzero(vid < 0)
         vid[new] = self.pool.extend(xyz[new, :2], run_z[ri[new]], run_plane[ri[new]])
         bounds = np.searchsorted(ri, np.arange(n_runs + 1))
         ids = vid.tolist()
         return [ids[bounds[i] : bounds[i + 1]] for i in range(n_runs)]
 
-    def _inside_face(self, run: _Run, xyz) -> bool:
-        """Is a point solved on the run's surface inside the face's trimmed region? Newton works on the
-        untrimmed surface: where the coarse topology crosses a nearly tangent edge far from its exact
-        root, seeds can converge beyond the face's boundary."""
-        ev = self.mesh.faces[run.face]
-        seed = run.uv[int(np.argmin(np.linalg.norm(run.uv - run.uv.mean(axis=0), axis=1)))]
-        u, v = ev.uv_near((float(xyz[0]), float(xyz[1]), run.zc), (float(seed[0]), float(seed[1])))
-        inside = ev.contains(u, v, tol=TRIM_TOL_MM)
+    def _off_face_box(self, face: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        """Mask of points whose face parameters lie beyond their face's (u, v) box."""
+        box, chk = self._uv_box[face], self._box_checked[face]
+        tol = 1e-9 * np.maximum(box[:, [1, 3]] - box[:, [0, 2]], 1.0)
+        below = uv < box[:, [0, 2]] - tol
+        above = uv > box[:, [1, 3]] + tol
+        return ((below | above) & chk).any(axis=1)
+
+    def _record_gaps(self, gap, length, pa, pb, z, face) -> None:
+        """Count the segments ``gap`` (kept over budget: no exact point between their ends)."""
+        if not gap.any():
+            return
+        self.stats.tolerance_gaps += int(gap.sum())
+        g = int(np.argmax(np.where(gap, length, -1.0)))
+        if length[g] > self.stats.max_gap_mm:
+            self.stats.max_gap_mm = float(length[g])
+            self.stats.max_gap_at = (
+                f"z={z[g]:.4f} mm, face {face[g] + 1}, from {np.round(pa[g], 4).tolist()} "
+                f"to {np.round(pb[g], 4).tolist()}"
+            )
+
+    def _inside_face(self, run: _Run, uv: np.ndarray) -> bool:
+        """Is a point solved on the run's surface (at these face parameters) inside the face's trimmed
+        region? Newton works on the untrimmed surface: where the coarse topology crosses a nearly
+        tangent edge far from its exact root, seeds can converge beyond the face's boundary. (The
+        classifier brings parameters of a periodic surface into its period.)"""
+        inside = self.mesh.faces[run.face].contains(float(uv[0]), float(uv[1]), tol=TRIM_TOL_MM)
         if not inside:
             self.stats.outside_face_points += 1
         return inside
@@ -555,10 +601,11 @@ class RingSampler:
 
     def _newton(
         self, fidx: np.ndarray, u: np.ndarray, v: np.ndarray, zc, max_step: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Batched Newton on ``z(u, v) = zc``, each point in its own face.
 
-        Returns (n, 3) points and an (n,) mask of those that converged (|z - zc| < LEVEL_TOL_MM). A seed
+        Returns (n, 3) points, an (n,) mask of those that converged (|z - zc| < LEVEL_TOL_MM) and their
+        (n, 2) face parameters (on whichever period Newton reached, for periodic surfaces). A seed
         fails where the surface is horizontal there (a plane tangent to it): no point of the level set
         is near, or the level set is degenerate.
 
@@ -571,6 +618,7 @@ class RingSampler:
         self.stats.newton_solves += n
         zc = np.broadcast_to(np.asarray(zc, dtype=np.float64), (n,))
         out = np.full((n, 3), np.nan)
+        out_uv = np.full((n, 2), np.nan)
         act = np.arange(n)
         u, v = u.astype(np.float64).copy(), v.astype(np.float64).copy()
         p, du, dv = gp_Pnt(), gp_Vec(), gp_Vec()
@@ -584,6 +632,7 @@ class RingSampler:
             f_ = res[:, 2] - zc[act]
             done = np.abs(f_) < LEVEL_TOL_MM
             out[act[done]] = res[done, :3]
+            out_uv[act[done], 0], out_uv[act[done], 1] = u[act[done]], v[act[done]]
             keep = ~done
             act, res, f_ = act[keep], res[keep], f_[keep]
             if not act.size:
@@ -607,7 +656,7 @@ class RingSampler:
             v[act] += sv * scale
         converged = ~np.isnan(out[:, 0])
         self.stats.newton_failures += int((~converged).sum())
-        return out, converged
+        return out, converged, out_uv
 
 
 def _point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
