@@ -293,23 +293,34 @@ class RingSampler:
         faces = self.mesh.tri_face[seg_tri]
         corner = topo.cross_is_corner[cross] | (faces != np.roll(faces, 1))
         starts = np.flatnonzero(corner).tolist() or [0]
+        vids = [self.crossing(int(cross[i])) for i in starts]
         if corner.any():
-            self.corner_vids.update(self.crossing(int(cross[i])) for i in starts)
+            self.corner_vids.update(vids)
+        # the loop's crossings twice over, so that every run (which may wrap) is one slice; corners
+        # at their exact positions
+        exact = self.pool.xyz[vids]
+        topo_xyz = topo.cross_xyz[cross]
+        pts = topo_xyz.copy()
+        pts[starts] = exact
+        pts = np.concatenate([pts, pts[:1]])
+        cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+        cum = np.concatenate([cum[:-1], cum[-1] + cum])
+        uv_start = np.concatenate([topo.cross_uv_start[cross]] * 2)
+        uv_end = np.concatenate([topo.cross_uv_end[cross]] * 2)
+        scale = np.concatenate([self.tri_uv_scale[seg_tri]] * 2)
+        gap = np.linalg.norm(exact - topo_xyz[starts], axis=1)
+        far = gap > SUSPECT_DEFLECTIONS * self.mesh.deflection
+        single = len(starts) == 1
         runs = []
         for r, i0 in enumerate(starts):
-            i1 = starts[(r + 1) % len(starts)]
-            count = (i1 - i0) % n or n
-            idx = (i0 + np.arange(count + 1)) % n
-            cs = cross[idx]
-            pts = topo.cross_xyz[cs].copy()
-            uv = np.vstack([topo.cross_uv_start[cs[:-1]], topo.cross_uv_end[cs[-2:-1]]])
-            start, end = self.crossing(int(cs[0])), self.crossing(int(cs[-1]))
-            pts[0], pts[-1] = self.pool.xyz[start], self.pool.xyz[end]
-            s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
-            n_seg = max(min_seg if len(starts) == 1 else 1, math.ceil(s[-1] / (self.seg_len * SEGMENT_FILL)))
-            step = 2.0 * float(self.tri_uv_scale[seg_tri[idx[:-1]]].max())
-            moved = self._moved(topo.cross_xyz[cs[[0, -1]]], pts[[0, -1]])
-            runs.append(_Run(int(faces[i0]), s, uv, step, start, end, n_seg, zc, j, moved))
+            r1 = (r + 1) % len(starts)
+            count = (starts[r1] - i0) % n or n
+            s = cum[i0 : i0 + count + 1] - cum[i0]
+            uv = np.concatenate([uv_start[i0 : i0 + count], uv_end[i0 + count - 1 : i0 + count]])
+            n_seg = max(min_seg if single else 1, math.ceil(s[-1] / (self.seg_len * SEGMENT_FILL)))
+            step = 2.0 * float(scale[i0 : i0 + count].max())
+            moved = tuple((exact[k].copy(), float(gap[k]) + self.seg_len) for k in (r, r1) if far[k])
+            runs.append(_Run(int(faces[i0]), s, uv, step, vids[r], vids[r1], n_seg, zc, j, moved))
         return runs
 
     def pinned_loop(self, li: int) -> list[int]:
