@@ -337,31 +337,48 @@ class RingSampler:
         cl = cross.tolist()
         faces = self.mesh.tri_face[topo.seg_tri[cross]]
         corner = topo.cross_is_corner[cross] | (faces != np.roll(faces, 1))
-        self.corner_vids.update(self.crossing(int(c)) for c in cross[corner])
+        vids = [self.crossing(c) for c in cl]
+        self.corner_vids.update(v for v, k in zip(vids, corner.tolist(), strict=True) if k)
+        # per crossing, at once: its successor's position in the loop, the exact segment length, and
+        # how far the exact point moved from the topology crossing
+        pos = {c: i for i, c in enumerate(cl)}
+        nxt_pos = np.array([pos[int(c)] for c in topo.succ[cross].tolist()], dtype=np.int64)
+        exact = self.pool.xyz[vids]
+        seg_d = np.linalg.norm(exact[nxt_pos] - exact, axis=1).tolist()
+        gap = np.linalg.norm(exact - topo.cross_xyz[cross], axis=1)
+        far = (gap > SUSPECT_DEFLECTIONS * self.mesh.deflection).tolist()
+        step_of = (2.0 * self.tri_uv_scale[topo.seg_tri[cross]]).tolist()
         es = self.edge_subdiv
         runs, sampled, repeats = [], [], []
-        for c in cl:
+        for i, c in enumerate(cl):
             if c in self.subdiv:
                 continue
-            nxt = int(topo.succ[c])
+            k = int(nxt_pos[i])
+            nxt = cl[k]
             na, nb = int(topo.cross_node[c]), int(topo.cross_node[nxt])
             key = (min(na, nb), max(na, nb)) if na >= 0 and nb >= 0 and na != nb else None
             if key is not None and key in es:
                 self.subdiv[c] = es[key] if na < nb else es[key][::-1]
                 continue
-            if key is not None and any(k == key for _, k in sampled):
+            if key is not None and any(q == key for _, q in sampled):
                 repeats.append((c, key, na < nb))
                 continue
-            start, end = self.crossing(c), self.crossing(nxt)
-            d = float(np.linalg.norm(np.subtract(self.pool.xyz[end], self.pool.xyz[start])))
             uv = np.stack([topo.cross_uv_start[c], topo.cross_uv_end[c]])
             t = int(topo.seg_tri[c])
-            step = 2.0 * float(self.tri_uv_scale[t])
-            moved = self._moved(
-                topo.cross_xyz[[c, nxt]], np.array([self.pool.xyz[start], self.pool.xyz[end]])
-            )
+            moved = tuple((exact[q].copy(), float(gap[q]) + self.seg_len) for q in (i, k) if far[q])
             runs.append(
-                _Run(int(self.mesh.tri_face[t]), np.array([0.0, d]), uv, step, start, end, 1, zc, j, moved)
+                _Run(
+                    int(self.mesh.tri_face[t]),
+                    np.array([0.0, seg_d[i]]),
+                    uv,
+                    step_of[i],
+                    vids[i],
+                    vids[k],
+                    1,
+                    zc,
+                    j,
+                    moved,
+                )
             )
             sampled.append((c, key))
         here: dict[tuple[int, int], list[int]] = {}  # this loop's in-plane edges, low node to high
@@ -576,11 +593,6 @@ class RingSampler:
         if not inside:
             self.stats.outside_face_points += 1
         return inside
-
-    def _moved(self, topo_ends: np.ndarray, exact_ends: np.ndarray) -> tuple[tuple[np.ndarray, float], ...]:
-        gap = np.linalg.norm(exact_ends - topo_ends, axis=1)
-        far = gap > SUSPECT_DEFLECTIONS * self.mesh.deflection
-        return tuple((exact_ends[k].copy(), float(gap[k]) + self.seg_len) for k in np.flatnonzero(far))
 
     def _d1(
         self, fa: np.ndarray, ua: np.ndarray, va: np.ndarray, ads, p, du, dv, derivatives: bool = True
