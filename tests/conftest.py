@@ -47,6 +47,15 @@ def build_part(kind: str, **kw):
         dome = bd.Pos(8, 0, 6.1) * bd.Sphere(2.0)
         pocket = bd.Pos(8, 0, 9) * bd.Box(8, 8, 6)
         return (block - hole - pocket) + dome
+    if kind == "dome_below_top":
+        # A plate with a spherical dome (R 4, apex at z = 5.1005, 0.5 um above the middle-mode plane 5.1
+        # for h = 0.2) and a taller post: the apex is a local, not the global, maximum. The sphere is
+        # turned so that its apex is not a pole of the B-spline.
+        plate = bd.Box(30, 20, 3, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MIN))
+        post = bd.Pos(11, 0, 0) * bd.Box(4, 4, 10, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MIN))
+        dome = bd.Pos(-5, 1, 5.1005 - 4.0) * bd.Sphere(4.0).rotate(bd.Axis.X, 37).rotate(bd.Axis.Z, 20)
+        below = bd.Box(40, 40, 10, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MAX))
+        return plate + post + (dome - below)
     raise ValueError(kind)
 
 

@@ -108,3 +108,77 @@ def _edge_extreme(mesh: TopoMesh, ei: int, sign: float) -> tuple[float, np.ndarr
     p = ev.ad.Value(x)
     pt = np.array([p.X(), p.Y(), p.Z()])
     return sign * pt[2], pt
+
+
+def snap_local_extremes(mesh: TopoMesh, planes: np.ndarray) -> int:
+    """Move nodes that are local height extremes of the topology mesh onto the exact extreme of
+    their face, where a plane passes between the two. Returns how many nodes moved.
+
+    A dome or dimple whose apex is not a node tops out up to one deflection above (below) its
+    highest (lowest) node: a plane in that band cuts a small loop the topology mesh does not see. A
+    node higher than all its neighbours that lies inside one face is moved onto the face's local
+    maximum found from its (u, v) (likewise for minima), if that lies inside the trimmed face and
+    within the node's fan. Extremes along a B-rep edge, and ridges (a line of maxima), are not
+    handled: a ridge gets one exact node, so its loop is found, but only around that node.
+    """
+    planes = np.sort(np.asarray(planes, dtype=np.float64))
+    if not len(planes):
+        return 0
+    z = mesh.xyz[:, 2]
+    e = np.concatenate([mesh.tris[:, [0, 1]], mesh.tris[:, [1, 2]], mesh.tris[:, [2, 0]]])
+    n = mesh.n_nodes
+    nb_max = np.full(n, -np.inf)
+    nb_min = np.full(n, np.inf)
+    np.maximum.at(nb_max, e[:, 0], z[e[:, 1]])
+    np.minimum.at(nb_min, e[:, 0], z[e[:, 1]])
+    band = _BAND_DEFLECTIONS * mesh.deflection
+    moved = 0
+    for sign, extreme in ((-1.0, z > nb_max), (1.0, z < nb_min)):
+        cand = np.flatnonzero(extreme)
+        if not len(cand):
+            continue
+        # a plane strictly beyond the node, within the band (above a maximum, below a minimum)
+        if sign < 0:
+            k = np.searchsorted(planes, z[cand], side="right")
+            hit = (k < len(planes)) & (planes[np.minimum(k, len(planes) - 1)] <= z[cand] + band)
+        else:
+            k = np.searchsorted(planes, z[cand], side="left") - 1
+            hit = (k >= 0) & (planes[np.maximum(k, 0)] >= z[cand] - band)
+        for node in cand[hit].tolist():
+            moved += _snap_node(mesh, node, sign)
+    return moved
+
+
+_BAND_DEFLECTIONS = 2.0  # an apex is at most one deflection beyond the node next to it; margin 2x
+
+
+def _snap_node(mesh: TopoMesh, node: int, sign: float) -> int:
+    tri, corner = np.nonzero(mesh.tris == node)
+    faces = np.unique(mesh.tri_face[tri])
+    if len(faces) != 1:
+        return 0  # on a B-rep edge
+    fe = mesh.faces[int(faces[0])]
+    u0, v0 = mesh.tri_uv[tri[0], corner[0]]
+
+    def fun(x: np.ndarray) -> tuple[float, np.ndarray]:
+        zz, zu, zv = fe.z_and_grad(float(x[0]), float(x[1]))
+        return sign * zz, sign * np.array([zu, zv])
+
+    res = minimize(
+        fun,
+        np.array([u0, v0]),
+        jac=True,
+        method="L-BFGS-B",
+        bounds=[(fe.u0, fe.u1), (fe.v0, fe.v1)],
+        options={"ftol": 1e-15, "gtol": 1e-12},
+    )
+    u, v = (float(x) for x in res.x)
+    p = np.array(fe.point(u, v))
+    old = mesh.xyz[node]
+    fan = mesh.xyz[np.unique(mesh.tris[tri])]
+    reach = float(np.linalg.norm(fan - old, axis=1).max())
+    if sign * p[2] >= sign * old[2] or np.linalg.norm(p - old) > reach or not fe.contains(u, v):
+        return 0
+    mesh.xyz[node] = p
+    mesh.tri_uv[tri, corner] = (u, v)
+    return 1

@@ -14,7 +14,7 @@ from OCP.BRepBndLib import BRepBndLib
 
 from worker.dst import constants as C
 from worker.dst.errors import ResourceLimitExceeded, TessellationError
-from worker.dst.lowest import snap_extremes
+from worker.dst.lowest import snap_extremes, snap_local_extremes
 from worker.dst.meshops import edge_defects, signed_volume
 from worker.dst.params import SliceParams
 from worker.dst.planes import PlanePlan, plan_planes
@@ -98,6 +98,7 @@ def slice_part(
     height = zmax - zmin
     planes = plan_planes(height=height, params=params)
     world = zmin + planes.section_z
+    local_extremes = sum(snap_local_extremes(mesh, world) for mesh in meshes)
     timings["extremes"] = time.perf_counter() - t
 
     # half the float32 spacing at each plane: a node closer than that is written onto the plane
@@ -120,7 +121,12 @@ def slice_part(
     pool = VertexPool()
     flat_planes: set[int] = set()
     all_tris: list[np.ndarray] = []
-    stats: dict = {"solids": len(part.solids), "planes": len(planes), "height_mm": height}
+    stats: dict = {
+        "solids": len(part.solids),
+        "planes": len(planes),
+        "height_mm": height,
+        "local_extremes_snapped": local_extremes,
+    }
     sampling_totals = {
         "newton_solves": 0,
         "edge_roots": 0,

@@ -25,7 +25,7 @@ from OCP.TopExp import TopExp_Explorer
 from OCP.TopoDS import TopoDS
 
 from worker.dst import constants as C
-from worker.dst.lowest import snap_extremes
+from worker.dst.lowest import snap_extremes, snap_local_extremes
 from worker.dst.pipeline import bbox_diagonal
 from worker.dst.sampling import RingSampler, VertexPool
 from worker.dst.sections import cut_topology
@@ -81,6 +81,8 @@ def exact_sections(
     if callable(heights):
         heights = heights(zmax - zmin)
     world = zmin + np.asarray(heights, dtype=np.float64)
+    for mesh in meshes:
+        snap_local_extremes(mesh, world)
     loops: list[list[np.ndarray]] = [[] for _ in range(len(world))]
     corners: list[list[np.ndarray]] = [[] for _ in range(len(world))]
     # as in the DST build: a node within half a float32 step of a plane is on it (what a slicer sees)

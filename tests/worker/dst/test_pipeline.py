@@ -190,3 +190,32 @@ def test_a_chord_target_finer_than_the_slicers_keep_is_reported(make_step):
     assert any("PrusaSlicer's gcode_resolution" in w for w in finer.warnings)
     default = slice_step(make_step("cone", radius=3.0, height=2.0), SliceParams())
     assert not any("simplification" in w or "gcode_resolution" in w for w in default.warnings)
+
+
+def test_a_plane_just_below_a_local_apex_gets_its_small_loop(make_step, monkeypatch):
+    """The dome's apex (not the part's top, not a mesh pole) is 0.5 um above plane 25: its exact section
+    there is a circle of radius sqrt(2 R 0.0005) ~ 0.063 mm, which the topology mesh alone misses."""
+
+    path = make_step("dome_below_top")
+    params = SliceParams(layer_height=0.2)
+    R, apex, centre = 4.0, 5.1005, np.array([-5.0, 1.0])
+    j = 25  # z = 5.1
+    expected = math.sqrt(R**2 - (5.1 - (apex - R)) ** 2)
+
+    def ring(mesh):
+        on = mesh.vertex_plane == j
+        return mesh.vertices[on]
+
+    mesh = slice_step(path, params)
+    assert mesh.planes.z[j] == pytest.approx(5.1)
+    assert mesh.stats["local_extremes_snapped"] >= 1
+    assert_watertight(mesh)
+    assert_slab_property(mesh)
+    pts = ring(mesh)
+    near = np.linalg.norm(pts[:, :2] - centre, axis=1) < 1.0
+    assert near.sum() >= 3, "the small loop under the apex is missing"
+    np.testing.assert_allclose(np.linalg.norm(pts[near, :2] - centre, axis=1), expected, atol=1e-5)
+    # without the snap the topology mesh's highest dome node is below the plane and the loop is lost
+    monkeypatch.setattr("worker.dst.pipeline.snap_local_extremes", lambda mesh, planes: 0)
+    plain = slice_step(path, params)
+    assert (np.linalg.norm(ring(plain)[:, :2] - centre, axis=1) < 1.0).sum() == 0
