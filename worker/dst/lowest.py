@@ -71,7 +71,16 @@ def _face_extreme(
     corners = mesh.tris[sel].ravel()
     uvs = mesh.tri_uv[sel].reshape(-1, 2)
     k = int(np.argmin(sign * mesh.xyz[corners, 2]))
-    u0, v0 = uvs[k]
+    u, v = _face_optimum(fe, uvs[k], sign)
+    if not fe.contains(u, v):
+        return []
+    p = np.array(fe.point(u, v))
+    return [(sign * p[2], p)]
+
+
+def _face_optimum(fe, uv0: np.ndarray, sign: float) -> tuple[float, float]:
+    """(u, v) of the face's lowest (sign=+1) or highest (sign=-1) point reached from ``uv0`` by bounded
+    L-BFGS on the untrimmed surface (the caller checks the trim)."""
 
     def fun(x: np.ndarray) -> tuple[float, np.ndarray]:
         z, zu, zv = fe.z_and_grad(float(x[0]), float(x[1]))
@@ -79,17 +88,13 @@ def _face_extreme(
 
     res = minimize(
         fun,
-        np.array([u0, v0]),
+        np.asarray(uv0, dtype=np.float64),
         jac=True,
         method="L-BFGS-B",
         bounds=[(fe.u0, fe.u1), (fe.v0, fe.v1)],
         options={"ftol": 1e-15, "gtol": 1e-12},
     )
-    u, v = (float(x) for x in res.x)
-    if not fe.contains(u, v):
-        return []
-    p = np.array(fe.point(u, v))
-    return [(sign * p[2], p)]
+    return float(res.x[0]), float(res.x[1])
 
 
 def _edge_extreme(mesh: TopoMesh, ei: int, sign: float) -> tuple[float, np.ndarray]:
@@ -158,21 +163,7 @@ def _snap_node(mesh: TopoMesh, node: int, sign: float) -> int:
     if len(faces) != 1:
         return 0  # on a B-rep edge
     fe = mesh.faces[int(faces[0])]
-    u0, v0 = mesh.tri_uv[tri[0], corner[0]]
-
-    def fun(x: np.ndarray) -> tuple[float, np.ndarray]:
-        zz, zu, zv = fe.z_and_grad(float(x[0]), float(x[1]))
-        return sign * zz, sign * np.array([zu, zv])
-
-    res = minimize(
-        fun,
-        np.array([u0, v0]),
-        jac=True,
-        method="L-BFGS-B",
-        bounds=[(fe.u0, fe.u1), (fe.v0, fe.v1)],
-        options={"ftol": 1e-15, "gtol": 1e-12},
-    )
-    u, v = (float(x) for x in res.x)
+    u, v = _face_optimum(fe, mesh.tri_uv[tri[0], corner[0]], sign)
     p = np.array(fe.point(u, v))
     old = mesh.xyz[node]
     fan = mesh.xyz[np.unique(mesh.tris[tri])]
