@@ -56,6 +56,17 @@ def build_part(kind: str, **kw):
         dome = bd.Pos(-5, 1, 5.1005 - 4.0) * bd.Sphere(4.0).rotate(bd.Axis.X, 37).rotate(bd.Axis.Z, 20)
         below = bd.Box(40, 40, 10, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MAX))
         return plate + post + (dome - below)
+    if kind == "tilted_boss":
+        # A plate with a cylinder (r 5, length 8) tilted 25 deg about x, whose circular top rim peaks
+        # at (-6, 5 cos 25 + 4 sin 25 ... ) z = 7.1005, 0.5 um above the middle-mode plane 7.1 for h = 0.2
+        # (apex on a B-rep edge, not the part's top: a taller post stands beside it).
+        t = math.radians(25.0)
+        dz = 7.1005 - (4 * math.cos(t) + 5 * math.sin(t))
+        plate = bd.Box(40, 30, 3, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MIN))
+        post = bd.Pos(15, 0, 0) * bd.Box(4, 4, 15, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MIN))
+        boss = bd.Pos(-6, 0, dz) * bd.Cylinder(5.0, 8.0).rotate(bd.Axis.X, 25)
+        below = bd.Box(60, 60, 10, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MAX))
+        return plate + post + (boss - below)
     raise ValueError(kind)
 
 

@@ -29,7 +29,7 @@ def snap_extremes(meshes: list[TopoMesh]) -> tuple[float, float]:
     lo = _extreme(meshes, sign=1.0)
     hi = _extreme(meshes, sign=-1.0)
     for mi, node, point in (lo, hi):
-        meshes[mi].xyz[node] = point
+        _move_node(meshes[mi], node, point)
     return float(lo[2][2]), float(hi[2][2])
 
 
@@ -123,8 +123,9 @@ def snap_local_extremes(mesh: TopoMesh, planes: np.ndarray) -> int:
     highest (lowest) node: a plane in that band cuts a small loop the topology mesh does not see. A
     node higher than all its neighbours that lies inside one face is moved onto the face's local
     maximum found from its (u, v) (likewise for minima), if that lies inside the trimmed face and
-    within the node's fan. Extremes along a B-rep edge, and ridges (a line of maxima), are not
-    handled: a ridge gets one exact node, so its loop is found, but only around that node.
+    within the node's fan; a node on a B-rep edge is moved onto the edge's extreme between its two
+    neighbours along it (the top of a tilted circular rim). Ridges (a line of maxima inside a face)
+    are not handled: a ridge gets one exact node, so its loop is found, but only around that node.
     """
     planes = np.sort(np.asarray(planes, dtype=np.float64))
     if not len(planes):
@@ -154,22 +155,75 @@ def snap_local_extremes(mesh: TopoMesh, planes: np.ndarray) -> int:
     return moved
 
 
-_BAND_DEFLECTIONS = 2.0  # an apex is at most one deflection beyond the node next to it; margin 2x
+_BAND_DEFLECTIONS = 2.0
+_SAME_POINT_MM = 1e-7  # an apex is at most one deflection beyond the node next to it; margin 2x
 
 
 def _snap_node(mesh: TopoMesh, node: int, sign: float) -> int:
     tri, corner = np.nonzero(mesh.tris == node)
     faces = np.unique(mesh.tri_face[tri])
-    if len(faces) != 1:
-        return 0  # on a B-rep edge
-    fe = mesh.faces[int(faces[0])]
-    u, v = _face_optimum(fe, mesh.tri_uv[tri[0], corner[0]], sign)
-    p = np.array(fe.point(u, v))
     old = mesh.xyz[node]
     fan = mesh.xyz[np.unique(mesh.tris[tri])]
     reach = float(np.linalg.norm(fan - old, axis=1).max())
+    if len(faces) > 1:  # on a B-rep edge: its extreme along the edge
+        p = _edge_node_optimum(mesh, node, sign)
+        if p is None or sign * p[2] >= sign * old[2] or np.linalg.norm(p - old) > reach:
+            return 0
+        _move_node(mesh, node, p)
+        return 1
+    fe = mesh.faces[int(faces[0])]
+    u, v = _face_optimum(fe, mesh.tri_uv[tri[0], corner[0]], sign)
+    p = np.array(fe.point(u, v))
     if sign * p[2] >= sign * old[2] or np.linalg.norm(p - old) > reach or not fe.contains(u, v):
         return 0
-    mesh.xyz[node] = p
-    mesh.tri_uv[tri, corner] = (u, v)
+    _move_node(mesh, node, p, uv=(u, v))
     return 1
+
+
+def _move_node(mesh: TopoMesh, node: int, p: np.ndarray, uv: tuple[float, float] | None = None) -> None:
+    """Put ``node`` at the exact surface point ``p``, with its (u, v) in every face around it (the
+    crossings next to it are solved along (u, v) segments from there). ``uv``: known, one face."""
+    if np.linalg.norm(p - mesh.xyz[node]) < _SAME_POINT_MM:
+        return  # already there (a pole keeps its per-triangle (u, v))
+    mesh.xyz[node] = p
+    tri, corner = np.nonzero(mesh.tris == node)
+    # per face and old (u, v): a node on a seam has one (u, v) on each side of it
+    uv_of: dict[tuple[int, float, float], tuple[float, float]] = {}
+    for t, c in zip(tri.tolist(), corner.tolist(), strict=True):
+        key = (int(mesh.tri_face[t]), *mesh.tri_uv[t, c].tolist())
+        if key not in uv_of:
+            fe = mesh.faces[key[0]]
+            new = uv if uv is not None else fe.uv_near(tuple(p), key[1:])
+            # keep the old (u, v) where the projection does not give the point back (a singular spot)
+            ok = np.linalg.norm(np.subtract(fe.point(*new), p)) < _SAME_POINT_MM
+            uv_of[key] = new if ok else key[1:]
+        mesh.tri_uv[t, c] = uv_of[key]
+
+
+def _edge_node_optimum(mesh: TopoMesh, node: int, sign: float) -> np.ndarray | None:
+    """The most extreme point of the B-rep edges through ``node`` between its two neighbours on each
+    (bounded Brent in the curve parameter), or None if there is none to search."""
+    along: dict[int, list[int]] = {}
+    for (a, b), ei in mesh.edge_of.items():
+        if a == node or b == node:
+            along.setdefault(ei, []).append(b if a == node else a)
+    best: np.ndarray | None = None
+    for ei, nbrs in along.items():
+        if len(nbrs) != 2:
+            continue  # the node ends this edge (a B-rep vertex)
+        ev = mesh.edges[ei]
+        s_n = ev.parameter_of(tuple(mesh.xyz[node]))
+        lo, hi = sorted(ev.parameter_of(tuple(mesh.xyz[n])) for n in nbrs)
+        if not lo < s_n < hi:
+            continue  # the neighbours straddle a closed edge's seam
+        res = minimize_scalar(
+            lambda x, ad=ev.ad: sign * ad.Value(float(x)).Z(),
+            bounds=(lo, hi),
+            method="bounded",
+            options={"xatol": 1e-13 * max(1.0, abs(ev.s1 - ev.s0))},
+        )
+        q = ev.ad.Value(float(res.x))
+        pt = np.array([q.X(), q.Y(), q.Z()])
+        if best is None or sign * pt[2] < sign * best[2]:
+            best = pt
+    return best

@@ -219,3 +219,37 @@ def test_a_plane_just_below_a_local_apex_gets_its_small_loop(make_step, monkeypa
     monkeypatch.setattr("worker.dst.pipeline.snap_local_extremes", lambda mesh, planes: 0)
     plain = slice_step(path, params)
     assert (np.linalg.norm(ring(plain)[:, :2] - centre, axis=1) < 1.0).sum() == 0
+
+
+def test_a_plane_just_below_the_top_of_a_tilted_rim_gets_its_loop(make_step, monkeypatch):
+    """The top of a tilted cylinder's circular rim (a B-rep edge) is 0.5 um above plane 35: the exact
+    section there is a small lens between the end cap and the wall, which the topology mesh alone
+    misses. Every ring vertex of it lies on the cap plane or the cylinder, inside the other."""
+    path = make_step("tilted_boss")
+    params = SliceParams(layer_height=0.2)
+    t = math.radians(25.0)
+    axis = np.array([0.0, -math.sin(t), math.cos(t)])
+    base = np.array([-6.0, 0.0, 7.1005 - (4 * math.cos(t) + 5 * math.sin(t))])  # the cylinder's centre
+    apex = base + 4 * axis + 5 * np.array([0.0, math.cos(t), math.sin(t)])
+    j = 35  # z = 7.1
+
+    def lens(mesh):
+        on = mesh.vertices[mesh.vertex_plane == j]
+        return on[np.linalg.norm(on[:, :2] - apex[:2], axis=1) < 1.0]
+
+    mesh = slice_step(path, params)
+    assert mesh.planes.z[j] == pytest.approx(7.1)
+    assert_watertight(mesh)
+    assert_slab_property(mesh)
+    pts = lens(mesh)
+    assert len(pts) >= 3, "the lens under the rim's top is missing"
+    r = pts - base
+    axial = r @ axis
+    radial = np.linalg.norm(r - axial[:, None] * axis, axis=1)
+    on_cap = np.abs(axial - 4.0) < 1e-5
+    on_wall = np.abs(radial - 5.0) < 1e-5
+    assert (on_cap | on_wall).all()
+    assert (radial[on_cap] <= 5.0 + 1e-5).all() and (axial[on_wall] <= 4.0 + 1e-5).all()
+    assert on_cap.any() and on_wall.any()
+    monkeypatch.setattr("worker.dst.pipeline.snap_local_extremes", lambda mesh, planes: 0)
+    assert len(lens(slice_step(path, params))) == 0
