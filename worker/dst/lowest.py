@@ -183,9 +183,10 @@ def _snap_node(mesh: TopoMesh, node: int, sign: float) -> int:
 def _move_node(mesh: TopoMesh, node: int, p: np.ndarray, uv: tuple[float, float] | None = None) -> None:
     """Put ``node`` at the exact surface point ``p``, with its (u, v) in every face around it (the
     crossings next to it are solved along (u, v) segments from there). ``uv``: known, one face."""
-    if np.linalg.norm(p - mesh.xyz[node]) < _SAME_POINT_MM:
-        return  # already there (a pole keeps its per-triangle (u, v))
+    moved = np.linalg.norm(p - mesh.xyz[node]) >= _SAME_POINT_MM
     mesh.xyz[node] = p
+    if not moved:
+        return  # (u, v) as it was (a pole keeps its per-triangle (u, v))
     tri, corner = np.nonzero(mesh.tris == node)
     # per face and old (u, v): a node on a seam has one (u, v) on each side of it
     uv_of: dict[tuple[int, float, float], tuple[float, float]] = {}
