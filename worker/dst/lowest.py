@@ -22,6 +22,8 @@ from scipy.optimize import minimize, minimize_scalar
 from worker.dst.topomesh import TopoMesh
 
 _CURVE_SAMPLES = 64  # coarse scan of an edge before Brent: finds the basin of its lowest point
+_BAND_DEFLECTIONS = 2.0  # an apex is at most one deflection beyond the node next to it; margin 2x
+_SAME_POINT_MM = 1e-7  # a node closer than this to its exact point keeps its (u, v)
 
 
 def snap_extremes(meshes: list[TopoMesh]) -> tuple[float, float]:
@@ -153,10 +155,6 @@ def snap_local_extremes(mesh: TopoMesh, planes: np.ndarray) -> int:
         for node in cand[hit].tolist():
             moved += _snap_node(mesh, node, sign)
     return moved
-
-
-_BAND_DEFLECTIONS = 2.0
-_SAME_POINT_MM = 1e-7  # an apex is at most one deflection beyond the node next to it; margin 2x
 
 
 def _snap_node(mesh: TopoMesh, node: int, sign: float) -> int:
