@@ -1,4 +1,4 @@
-"""The part's exact lowest and highest points, made vertices of the topology meshes.
+"""The part's exact lowest and highest points, and local apexes, made vertices of the topology meshes.
 
 Slicers drop a mesh onto the bed by its lowest vertex, so the DST mesh's lowest vertex must be the
 part's exact lowest point, and plane heights are measured from it. Likewise a plane just below the
@@ -12,6 +12,9 @@ may miss the extreme (the bottom line of a horizontal cylinder, the top of a B-s
    around the lowest sample of the curve;
 3. the node nearest to the winning point is moved onto it (an exact surface point again). Only one
    node moves, by less than a topology-mesh triangle, so no triangle folds.
+
+Local apexes and dimples (``snap_local_extremes``) get the same treatment where a plane passes
+between the node and the exact extreme: otherwise that plane's small loop would be missed.
 """
 
 from __future__ import annotations
