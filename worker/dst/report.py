@@ -269,7 +269,6 @@ def build_report(
             )
         )
     todo.extend(meshes)
-    results: list[MeshReport] = []
     total = len(todo) + len(baselines)
     for i, name in enumerate(baselines):
         report(f"baseline {name}", 0.3 + 0.6 * (len(todo) + i) / total)

@@ -550,12 +550,14 @@ class RingSampler:
                     if not self._inside_face(r, uv[k]):
                         vid[k] = -2
         keep = vid != -2
+        dropped_before = np.cumsum(~keep)[keep]
         ri, xyz, vid = ri[keep], xyz[keep], vid[keep]
         if not keep.all():
-            # where points were dropped the segment across them may exceed the budget: no exact point
-            # of this face lies there, so it is a gap of the B-rep (reported with the others)
-            same = ri[1:] == ri[:-1]
-            d = np.where(same, np.linalg.norm(xyz[1:] - xyz[:-1], axis=1), 0.0)
+            # a segment that now spans dropped points may exceed the budget: no exact point of this
+            # face lies there, so it is a gap of the B-rep (reported with the others; segments kept
+            # over budget during refinement were counted there already)
+            spans = (ri[1:] == ri[:-1]) & (dropped_before[1:] != dropped_before[:-1])
+            d = np.where(spans, np.linalg.norm(xyz[1:] - xyz[:-1], axis=1), 0.0)
             self._record_gaps(d > L, d, xyz[:-1], xyz[1:], run_z[ri[:-1]], run_face[ri[:-1]])
         new = np.flatnonzero(vid < 0)
         vid[new] = self.pool.extend(xyz[new, :2], run_z[ri[new]], run_plane[ri[new]])

@@ -30,7 +30,6 @@ from OCP.TopoDS import TopoDS, TopoDS_Compound, TopoDS_Shape, TopoDS_Solid
 from worker.dst.errors import EmptyGeometryError, NotASolidError, StepReadError
 from worker.dst.sniff import SNIFF_BYTES, sniff_step
 
-# Part 21 files start with this keyword (ISO 10303-21 section 5); checked before OCCT sees the file.
 SEWING_TOL_MM = 1e-3  # gaps up to 1 um between open shells' edges are closed by sewing
 
 
