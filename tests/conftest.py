@@ -12,7 +12,8 @@ CORPUS = Path(__file__).resolve().parents[1].parent / "shared" / "corpus"
 
 
 def build_part(kind: str, **kw):
-    """An analytic part as a build123d shape (mm). Kinds: hemisphere, torus, cone, tube, step_box."""
+    """An analytic part as a build123d shape (mm). Kinds: hemisphere, torus, cone, tube, step_box,
+    tangent_features, dome_below_top, tilted_boss."""
     import build123d as bd
 
     if kind == "hemisphere":
@@ -58,8 +59,8 @@ def build_part(kind: str, **kw):
         return plate + post + (dome - below)
     if kind == "tilted_boss":
         # A plate with a cylinder (r 5, length 8) tilted 25 deg about x, whose circular top rim peaks
-        # at (-6, 5 cos 25 + 4 sin 25 ... ) z = 7.1005, 0.5 um above the middle-mode plane 7.1 for h = 0.2
-        # (apex on a B-rep edge, not the part's top: a taller post stands beside it).
+        # at z = 7.1005 (4 cos 25 + 5 sin 25 above the cylinder's centre), 0.5 um above the middle-mode
+        # plane 7.1 for h = 0.2 (apex on a B-rep edge, not the part's top: a taller post stands beside it).
         t = math.radians(25.0)
         dz = 7.1005 - (4 * math.cos(t) + 5 * math.sin(t))
         plate = bd.Box(40, 30, 3, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MIN))
