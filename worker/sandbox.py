@@ -9,7 +9,6 @@ store, beats the job's heartbeat, and kills the child on timeout or cancellation
 
 from __future__ import annotations
 
-import ctypes
 import multiprocessing as mp
 import os
 import resource
@@ -19,6 +18,7 @@ import traceback
 from pathlib import Path
 from typing import Any
 
+from worker.dst.forked import die_with_parent
 from worker.settings import Settings
 from worker.storage import ArtifactStore
 from worker.store import JobStore, this_worker_name
@@ -28,7 +28,7 @@ _PROGRESS_EVERY_S = 0.25
 
 def _child(conn, job_dir: str, input_path: str, params: dict, file_name: str, memory_mb: int) -> None:
     """The sandboxed process: limits, quiet OCCT, the job, one final message."""
-    _die_with_parent()
+    die_with_parent()
     resource.setrlimit(resource.RLIMIT_AS, (memory_mb << 20, memory_mb << 20))
     log = os.open(os.path.join(job_dir, "occt.log"), os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
     os.dup2(log, 1)  # OCCT prints banners on the C++ stdout/stderr
@@ -51,18 +51,6 @@ def _child(conn, job_dir: str, input_path: str, params: dict, file_name: str, me
         conn.send(("error", "internal_error", f"{type(exc).__name__}: {exc}"))
     finally:
         conn.close()
-
-
-def _die_with_parent() -> None:
-    """Linux: be killed when the supervising worker dies, however it dies (no orphaned OCCT runs)."""
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-    except OSError:
-        return
-    pr_set_pdeathsig = 1
-    libc.prctl(pr_set_pdeathsig, signal.SIGKILL)
-    if os.getppid() == 1:  # the parent died before prctl took effect
-        os._exit(1)
 
 
 def run_sandboxed(job_id: str, store: JobStore, artifacts: ArtifactStore, settings: Settings) -> str:

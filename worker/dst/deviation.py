@@ -295,8 +295,9 @@ class SegmentSet:
         # each plane's points lifted far from every other plane's: one tree serves all planes
         return np.column_stack([pts, plane * _PLANE_SEPARATION_MM])
 
-    def distance(self, pts: np.ndarray, plane: np.ndarray) -> np.ndarray:
-        """Distance of each point to the nearest segment of its own plane (inf if the plane has none)."""
+    def distance(self, pts: np.ndarray, plane: np.ndarray, *, workers: int = -1) -> np.ndarray:
+        """Distance of each point to the nearest segment of its own plane (inf if the plane has none).
+        ``workers``: threads of the k-d tree search (-1: all CPUs)."""
         out = np.full(len(pts), np.inf)
         if self.tree is None or not len(pts):
             return out
@@ -312,7 +313,7 @@ class SegmentSet:
         k = _K_NEIGHBOURS
         while len(todo):
             k = min(k, self.tree.n)
-            dk, ik = self.tree.query(q[todo], k=k, workers=-1)
+            dk, ik = self.tree.query(q[todo], k=k, workers=workers)
             dk, ik = dk.reshape(len(todo), k), ik.reshape(len(todo), k)
             rows = self._rows[self.owner[ik]]  # (n, k, columns)
             d[todo] = _point_curve(p2[todo][:, None, :], rows).min(axis=1)
@@ -372,7 +373,9 @@ def max_per_plane(values: np.ndarray, plane: np.ndarray, n_planes: int) -> np.nd
     return out
 
 
-def compare(cut: MeshCut, ref: SegmentSet, ref_perimeter: np.ndarray, n_planes: int) -> LayerMetrics:
+def compare(
+    cut: MeshCut, ref: SegmentSet, ref_perimeter: np.ndarray, n_planes: int, *, workers: int = -1
+) -> LayerMetrics:
     """Metrics of ``cut`` against the reference segments, per plane.
 
     vertex_dev : max distance of the cut's vertices from the reference
@@ -382,6 +385,7 @@ def compare(cut: MeshCut, ref: SegmentSet, ref_perimeter: np.ndarray, n_planes: 
                 reference's vertices are as dense as its chord tolerance needs (spacing ~ sqrt(8 R c)),
                 so a maximum between two of them is missed by at most about that tolerance.
     perimeter_err : |L_ref - L_cut| / L_ref
+    workers : threads of the nearest-segment searches (-1: all CPUs)
     A plane where one side is empty and the other is not has NaN distances (and perimeter_err 1 when
     the cut is empty, NaN when the reference is); a plane where both are empty has zeros.
     """
@@ -390,7 +394,9 @@ def compare(cut: MeshCut, ref: SegmentSet, ref_perimeter: np.ndarray, n_planes: 
     # the cut's vertices and segment midpoints against the reference, in one search
     n_vert = len(cut.vertices)
     d_cut = ref.distance(
-        np.concatenate([cut.vertices, midpoints(cut.seg)]), np.concatenate([cut.vertex_plane, cut.seg_plane])
+        np.concatenate([cut.vertices, midpoints(cut.seg)]),
+        np.concatenate([cut.vertex_plane, cut.seg_plane]),
+        workers=workers,
     )
     vertex_dev = max_per_plane(d_cut[:n_vert], cut.vertex_plane, n_planes)
 
@@ -400,7 +406,7 @@ def compare(cut: MeshCut, ref: SegmentSet, ref_perimeter: np.ndarray, n_planes: 
     n_ref = len(ref.seg)
     ref_pts = np.concatenate([ref.seg[:, 0], arc_midpoints(ref.seg, ref.curv)])
     ref_pl = np.concatenate([ref.seg_plane, ref.seg_plane])
-    d_ref = cut_set.distance(ref_pts, ref_pl)
+    d_ref = cut_set.distance(ref_pts, ref_pl, workers=workers)
     if ref.nxt is not None and n_ref:
         d_ref = span_max(d_ref[:n_ref], d_ref[n_ref:], d_ref[:n_ref][ref.nxt], ref.chord)
         ref_pl = ref.seg_plane

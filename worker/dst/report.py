@@ -11,7 +11,6 @@ import math
 import os
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Literal
 
@@ -39,6 +38,7 @@ from worker.dst.deviation import (
     span_curvatures,
 )
 from worker.dst.errors import TessellationError
+from worker.dst.forked import Task, TaskDied, TaskGroup
 from worker.dst.meshops import edge_defects, signed_volume
 from worker.dst.params import SliceParams
 from worker.dst.pipeline import DstMesh, bbox_diagonal, simplification_warnings, topo_deflection
@@ -57,17 +57,17 @@ REFERENCE_SEGMENT_MM = 2.0
 # Cura drops section loops shorter than this (minimum_polygon_circumference default)
 CURA_MIN_CIRCUMFERENCE_MM = 1.0
 VOLUME_WARN_REL = 0.01  # a mesh enclosing 1% more or less than the solid is worth a warning
-MEASURE_THREADS = 2
 
 
-def conventional_mesh(part: LoadedPart, preset: Preset) -> tuple[np.ndarray, np.ndarray]:
+def conventional_mesh(
+    part: LoadedPart, preset: Preset, *, parallel: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
     """OCCT's BRepMesh of the part at ``preset``: vertices merged as an STL reader merges them (equal
-    float32 coordinates), triangles oriented outward."""
+    float32 coordinates), triangles oriented outward. ``parallel``: faces on OCCT's thread pool, as
+    slicers mesh them (not in a forked process: see ``forked``); the mesh is the same either way."""
     comp = part.compound
     BRepTools.Clean_s(comp)  # otherwise a finer triangulation already on the faces is reused
-    BRepMesh_IncrementalMesh(
-        comp, preset.linear, False, preset.angular, True
-    )  # faces in parallel, as slicers do
+    BRepMesh_IncrementalMesh(comp, preset.linear, False, preset.angular, parallel)
     xyz, tris, off = [], [], 0
     exp = TopExp_Explorer(comp, TopAbs_FACE)
     while exp.More():
@@ -91,6 +91,46 @@ def conventional_mesh(part: LoadedPart, preset: Preset) -> tuple[np.ndarray, np.
     t = inv.reshape(-1)[np.concatenate(tris)]
     t = t[(t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 2] != t[:, 0])]
     return uniq.astype(np.float64), t
+
+
+@dataclass
+class OcctSide:
+    """What the report needs from OCCT besides the exact sections."""
+
+    baselines: list[MeshInput]
+    xy_box: tuple[tuple[float, float], tuple[float, float]]
+    volume_mm3: float
+
+
+def _occt_side(part: LoadedPart, baselines: Sequence[str], parallel: bool) -> OcctSide:
+    """The conventional baseline meshes, the part's exact x/y extent and its exact volume."""
+    out = []
+    for name in baselines:
+        preset = BASELINE_PRESETS[name]
+        t = time.perf_counter()
+        v, tr = conventional_mesh(part, preset, parallel=parallel)
+        out.append(
+            MeshInput(
+                name,
+                "baseline",
+                v,
+                tr,
+                time.perf_counter() - t,
+                f"OCCT BRepMesh, linear {preset.linear} mm, angular {preset.angular} rad: {preset.source}"
+                + ("" if parallel else " (timed on one thread)"),
+            )
+        )
+    return OcctSide(out, xy_box(part), part.volume_mm3)
+
+
+def _occt_result(side: Task) -> OcctSide:
+    try:
+        return side.result()
+    except TaskDied as exc:
+        raise TessellationError(
+            f"OCCT failed while meshing the conventional baselines: {exc}; the report can be made "
+            "without them (baselines 'none')"
+        ) from exc
 
 
 # --- the JSON contract -----------------------------------------------------------------------------
@@ -224,11 +264,34 @@ def build_report(
     meshes: Sequence[MeshInput] = (),
     baselines: Sequence[str] = DEFAULT_BASELINES,
     progress: Progress | None = None,
+    processes: int | None = None,
 ) -> Report:
-    """Measure ``dst`` (if given), ``meshes`` and the ``baselines`` presets against the exact part."""
+    """Measure ``dst`` (if given), ``meshes`` and the ``baselines`` presets against the exact part.
+
+    ``processes``: at most this many forked helper processes at a time (default: the usable CPUs;
+    1 computes everything in this process, as it also does where fork is unavailable).
+    """
     report = progress or (lambda stage, frac: None)
     baselines = parse_baselines(list(baselines))
+    with TaskGroup(forked=processes != 1, limit=processes) as tasks:
+        return _build_report(part, params, file_name, dst, meshes, baselines, tasks, report)
+
+
+def _build_report(
+    part: LoadedPart,
+    params: SliceParams,
+    file_name: str,
+    dst: DstMesh | None,
+    meshes: Sequence[MeshInput],
+    baselines: tuple[str, ...],
+    tasks: TaskGroup,
+    report: Progress,
+) -> Report:
     warnings: list[str] = []
+    # OCCT's own work (the baselines, the exact box and volume) holds the GIL: it runs in a child
+    # process beside the exact reference, on one thread there (OCCT's thread pool stays behind in
+    # this process when it forks).
+    side = tasks.submit(_occt_side, part, baselines, not tasks.forked)
     report("exact sections", 0.0)
     t = time.perf_counter()
     diag, _ = bbox_diagonal(part)
@@ -254,7 +317,6 @@ def build_report(
     ref_seconds = time.perf_counter() - t
     n_planes = len(heights)
     loops_exact = np.array([len(ls) for ls in ref.loops], dtype=np.int64)
-    exact_volume = part.volume_mm3
 
     todo: list[MeshInput] = []
     if dst is not None:
@@ -269,33 +331,32 @@ def build_report(
             )
         )
     todo.extend(meshes)
-    total = len(todo) + len(baselines)
-    for i, name in enumerate(baselines):
-        report(f"baseline {name}", 0.3 + 0.6 * (len(todo) + i) / total)
-        preset = BASELINE_PRESETS[name]
-        t = time.perf_counter()
-        v, tr = conventional_mesh(part, preset)
-        todo.append(
-            MeshInput(
-                name,
-                "baseline",
-                v,
-                tr,
-                time.perf_counter() - t,
-                f"OCCT BRepMesh, linear {preset.linear} mm, angular {preset.angular} rad: {preset.source}",
+    report("measuring meshes", 0.4)
+    # Measured in helper processes, longest first so that they finish together; one k-d tree
+    # thread each when they run side by side.
+    workers = 1 if tasks.forked and tasks.limit > 1 else -1
+    measuring: dict[int, Task] = {}
+
+    def start(ms: list[MeshInput]) -> None:
+        for m in sorted(ms, key=lambda m: _cut_size(m, heights), reverse=True):
+            measuring[id(m)] = tasks.submit(
+                _measure, m, heights, planes_z, ref_set, ref_perimeter, loops_exact, n_planes, workers
             )
-        )
-    # The meshes are measured two at a time: numpy and the k-d tree release the GIL for most of it.
-    report("measuring meshes", 0.9)
-    with ThreadPoolExecutor(max_workers=MEASURE_THREADS) as pool:
-        results = list(
-            pool.map(
-                lambda m: _measure(
-                    m, heights, planes_z, ref_set, ref_perimeter, loops_exact, exact_volume, n_planes
-                ),
-                todo,
-            )
-        )
+
+    if baselines and not side.ready():
+        start(todo)  # while OCCT finishes the baselines
+        report("conventional meshes", 0.5)
+        occt = _occt_result(side)
+        start(occt.baselines)
+    else:
+        occt = _occt_result(side)
+        start(todo + occt.baselines)
+    todo.extend(occt.baselines)
+    report("measuring meshes", 0.7)
+    results = [measuring[id(m)].result() for m in todo]
+    exact_volume = occt.volume_mm3
+    for r in results:
+        r.volume_rel_err = (r.volume_mm3 - exact_volume) / exact_volume if exact_volume > 0 else None
 
     dst_summary = next((r.summary for r in results if r.kind == "dst"), None)
     if dst_summary is not None:
@@ -330,7 +391,7 @@ def build_report(
         )
     for r in results:
         warnings.extend(_mesh_warnings(r))
-    box_lo, box_hi = xy_box(part)
+    box_lo, box_hi = occt.xy_box
     warnings.extend(_placement_warnings(todo, box_lo, box_hi))
 
     report("done", 1.0)
@@ -372,15 +433,17 @@ def _measure(
     ref_set: SegmentSet,
     ref_perimeter: np.ndarray,
     loops_exact: np.ndarray,
-    exact_volume: float,
     n_planes: int,
+    workers: int,
 ) -> MeshReport:
+    """Cut and measure one mesh (pure numpy: runs in a forked helper); ``volume_rel_err`` is left to
+    the caller, which has the exact volume."""
     v = np.array(m.vertices, dtype=np.float64)
     tr = np.asarray(m.triangles, dtype=np.int64).reshape(-1, 3)
     if len(v):
         v[:, 2] -= v[:, 2].min()  # the slicer drops the mesh onto the bed
     cut = cut_mesh(v, tr, heights)
-    met = compare(cut, ref_set, ref_perimeter, n_planes)
+    met = compare(cut, ref_set, ref_perimeter, n_planes, workers=workers)
     open_edges, nonmanifold = edge_defects(tr, len(v)) if len(tr) else (0, 0)
     volume = signed_volume(v, tr) if len(tr) else 0.0
     layers = [
@@ -418,11 +481,19 @@ def _measure(
         open_edges=open_edges,
         nonmanifold_edges=nonmanifold,
         volume_mm3=volume,
-        volume_rel_err=(volume - exact_volume) / exact_volume if exact_volume > 0 else None,
         seconds=None if m.seconds is None else round(float(m.seconds), 4),
         summary=summary,
         layers=layers,
     )
+
+
+def _cut_size(m: MeshInput, heights: np.ndarray) -> int:
+    """Segments the mesh's cut will have (triangle-plane crossings): what measuring it costs."""
+    if not len(m.triangles):
+        return 0
+    z = np.asarray(m.vertices)[:, 2]
+    tz = (z - z.min())[np.asarray(m.triangles).reshape(-1, 3)]
+    return int((np.searchsorted(heights, tz.max(axis=1)) - np.searchsorted(heights, tz.min(axis=1))).sum())
 
 
 def _num(x: float) -> float | None:

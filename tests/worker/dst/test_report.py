@@ -223,3 +223,49 @@ def test_soapbox_rings_stay_inside_their_faces(corpus):
     assert dst.layers[54].vertex_dev < 1e-3, dst.layers[54]
     assert dst.summary.max_vertex_dev < 2e-3
     assert dst.summary.max_chord_dev <= params.chord_error * 1.01
+
+
+def _numbers(report: Report) -> list:
+    """Everything a report measured, without the timings (and the descriptions that mention them)."""
+    out = []
+    for m in report.meshes:
+        d = m.model_dump(exclude={"seconds", "description"})
+        out.append(d)
+    return out
+
+
+def test_forked_helpers_and_one_process_give_the_same_report(hemisphere):
+    """The baselines meshed in a forked child on one thread, the meshes measured in forked
+    children, against everything in this process: the same numbers."""
+    path, mesh, _, _ = hemisphere
+    params = SliceParams(layer_height=0.2)
+    kw = dict(file_name=str(path), dst=mesh, baselines=["occt_fast", "occt_high_quality"])
+    forked = build_report(mesh.part, params, **kw)
+    inline = build_report(mesh.part, params, processes=1, **kw)
+    assert [m.name for m in forked.meshes] == ["dst", "occt_fast", "occt_high_quality"]
+    assert _numbers(forked) == _numbers(inline)
+    assert forked.input == inline.input and forked.warnings == inline.warnings
+
+
+def test_a_crash_while_meshing_a_baseline_ends_the_report_cleanly(hemisphere, monkeypatch):
+    """OCCT dying in the baselines' helper (here: the helper killed) is an error naming the
+    baselines and the way round them, not a hang or a dead job process."""
+    import faulthandler
+    import os
+    import signal
+
+    from worker.dst import report as report_mod
+    from worker.dst.errors import TessellationError
+    from worker.dst.forked import fork_available
+
+    if not fork_available():
+        pytest.skip("fork is used on Linux only")
+    path, mesh, _, _ = hemisphere
+
+    def crash(*args, **kwargs):
+        faulthandler.disable()  # pytest's handler would print the helper's stack
+        os.kill(os.getpid(), signal.SIGSEGV)
+
+    monkeypatch.setattr(report_mod, "conventional_mesh", crash)
+    with pytest.raises(TessellationError, match=r"baselines: .*signal 11.*'none'"):
+        build_report(mesh.part, SliceParams(layer_height=0.2), file_name=str(path), dst=mesh)

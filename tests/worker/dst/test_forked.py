@@ -1,0 +1,89 @@
+"""Forked helper tasks: results and errors come back, dead children are reported, the limit holds."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+
+import numpy as np
+import pytest
+
+from worker.dst.errors import TessellationError
+from worker.dst.forked import TaskDied, TaskGroup, fork_available
+
+needs_fork = pytest.mark.skipif(not fork_available(), reason="fork is used on Linux only")
+
+
+def _pid_and_sum(a: np.ndarray) -> tuple[int, float]:
+    return os.getpid(), float(a.sum())
+
+
+def _fail() -> None:
+    raise TessellationError("the face has no triangles")
+
+
+def _die() -> None:
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
+def _span(seconds: float) -> tuple[float, float]:
+    t = time.monotonic()
+    time.sleep(seconds)
+    return t, time.monotonic()
+
+
+@needs_fork
+def test_a_forked_task_sees_the_parents_memory_and_returns_its_value():
+    big = np.arange(1_000_000, dtype=np.float64)  # not pickled on the way in: the child shares it
+    with TaskGroup(forked=True) as tasks:
+        t = tasks.submit(_pid_and_sum, big)
+        pid, total = t.result()
+    assert pid != os.getpid()
+    assert total == float(big.sum())
+
+
+@pytest.mark.parametrize("forked", [True, False])
+def test_errors_come_back_with_their_type_and_code(forked):
+    if forked and not fork_available():
+        pytest.skip("fork is used on Linux only")
+    with TaskGroup(forked=forked) as tasks:
+        t = tasks.submit(_fail)
+        with pytest.raises(TessellationError, match="no triangles") as info:
+            t.result()
+    assert info.value.code == "tessellation_error"
+    if forked:
+        assert any("forked helper" in n for n in info.value.__notes__)
+
+
+@needs_fork
+def test_a_child_that_dies_is_reported_not_waited_for():
+    with TaskGroup(forked=True) as tasks:
+        t = tasks.submit(_die)
+        with pytest.raises(TaskDied, match="signal 9"):
+            t.result()
+
+
+@needs_fork
+def test_no_more_children_than_the_limit_run_at_once():
+    with TaskGroup(forked=True, limit=2) as tasks:
+        spans = [t.result() for t in [tasks.submit(_span, 0.3) for _ in range(5)]]
+    events = sorted([(a, 1) for a, _ in spans] + [(b, -1) for _, b in spans])
+    running = np.cumsum([e for _, e in events])
+    assert running.max() == 2  # two at a time, and five ran
+
+
+@needs_fork
+def test_leaving_the_group_early_kills_its_children():
+    with pytest.raises(RuntimeError), TaskGroup(forked=True) as tasks:
+        t = tasks.submit(_span, 60.0)
+        raise RuntimeError("the computation failed")
+    with pytest.raises(ProcessLookupError):
+        os.kill(t.pid, 0)  # killed and reaped
+
+
+def test_inline_tasks_run_in_this_process():
+    with TaskGroup(forked=False) as tasks:
+        assert not tasks.forked
+        pid, _ = tasks.submit(_pid_and_sum, np.ones(3)).result()
+    assert pid == os.getpid()
