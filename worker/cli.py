@@ -42,7 +42,23 @@ def _add_report_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--html", default=None, help="also write a self-contained HTML page of the report")
     p.add_argument("--plot", default=None, help="also write the per-layer plot (.svg or .png)")
+    p.add_argument(
+        "--processes",
+        type=_positive_int,
+        default=None,
+        help="helper processes the report may run at once (default: the CPUs; 1: all in this process)",
+    )
     p.add_argument("-q", "--quiet", action="store_true", help="no progress on stderr")
+
+
+def _positive_int(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if not 1 <= n <= 256:
+        raise argparse.ArgumentTypeError(f"expected a whole number from 1 to 256, got {text!r}")
+    return n
 
 
 def _add_slice_parser(sub: argparse._SubParsersAction) -> None:
@@ -105,8 +121,10 @@ def _check_report_outputs(args: argparse.Namespace, json_path: str | None) -> No
         _check_output(path)
     if args.plot and os.path.splitext(args.plot)[1].lower() not in {".svg", ".png"}:
         raise _UserError(f"--plot must end in .svg or .png: {args.plot}")
-    if (args.html or args.plot or args.baselines) and not json_path:
-        raise _UserError("--html, --plot and --baselines need --report (the report they belong to)")
+    if (args.html or args.plot or args.baselines or args.processes) and not json_path:
+        raise _UserError(
+            "--html, --plot, --baselines and --processes need --report (the report they belong to)"
+        )
 
 
 def _progress(args: argparse.Namespace, start: float):
@@ -148,7 +166,13 @@ def _cmd_slice(args: argparse.Namespace) -> int:
         from worker.dst.report import build_report  # noqa: PLC0415
 
         report = build_report(
-            mesh.part, params, file_name=args.input, dst=mesh, baselines=baselines, progress=progress
+            mesh.part,
+            params,
+            file_name=args.input,
+            dst=mesh,
+            baselines=baselines,
+            progress=progress,
+            processes=args.processes,
         )
         _write_report(args, report, args.report)
     else:
@@ -178,7 +202,13 @@ def _cmd_report(args: argparse.Namespace) -> int:
         os.path.basename(args.mesh), "input", vertices, triangles, None, f"read from {args.mesh}"
     )
     report = build_report(
-        part, params, file_name=args.input, meshes=[mesh], baselines=baselines, progress=progress
+        part,
+        params,
+        file_name=args.input,
+        meshes=[mesh],
+        baselines=baselines,
+        progress=progress,
+        processes=args.processes,
     )
     _write_report(args, report, args.output)
     return 0

@@ -10,9 +10,17 @@ Progress = Callable[[str, float], None]
 
 
 def run_job(
-    job_dir: Path, input_path: Path, params: dict[str, Any], file_name: str, progress: Progress
+    job_dir: Path,
+    input_path: Path,
+    params: dict[str, Any],
+    file_name: str,
+    progress: Progress,
+    *,
+    report_processes: int | None = None,
 ) -> dict[str, Any]:
     """Build ``mesh.stl``, ``report.json``, ``report.html``, ``plot.svg`` and ``plot.png`` in ``job_dir``.
+
+    ``report_processes``: helper processes the report may fork at once (see ``build_report``).
 
     Returns a short summary for the job record. Raises the core's ``DstError`` subclasses on bad input.
     """
@@ -42,6 +50,7 @@ def run_job(
         dst=mesh,
         baselines=baselines,
         progress=lambda s, f: progress(f"report: {s}", 0.55 + 0.4 * f),
+        processes=report_processes,
     )
     write_json(report, job_dir / "report.json")
     progress("plots", 0.96)

@@ -4,7 +4,8 @@ OCCT holds the GIL and cannot be interrupted by a signal or a thread: the only r
 kill the process it runs in. The supervisor (a thread of the Celery worker) claims the job, starts a
 fresh *spawned* child (never a fork of a process that ran OCCT), relays its progress to the job
 store, beats the job's heartbeat, and kills the child on timeout or cancellation. A child that dies
-(segfault, OOM kill) fails the job with ``worker_crashed``; the worker carries on.
+(segfault, OOM kill) fails the job with ``worker_crashed``; the worker carries on. The job's
+report may fork helpers of its own (``worker.dst.forked``); they die with the job's process.
 """
 
 from __future__ import annotations
@@ -26,7 +27,15 @@ from worker.store import JobStore, this_worker_name
 _PROGRESS_EVERY_S = 0.25
 
 
-def _child(conn, job_dir: str, input_path: str, params: dict, file_name: str, memory_mb: int) -> None:
+def _child(
+    conn,
+    job_dir: str,
+    input_path: str,
+    params: dict,
+    file_name: str,
+    memory_mb: int,
+    report_processes: int | None,
+) -> None:
     """The sandboxed process: limits, quiet OCCT, the job, one final message."""
     die_with_parent()
     resource.setrlimit(resource.RLIMIT_AS, (memory_mb << 20, memory_mb << 20))
@@ -40,7 +49,9 @@ def _child(conn, job_dir: str, input_path: str, params: dict, file_name: str, me
         def progress(stage: str, frac: float) -> None:
             conn.send(("progress", stage, float(frac)))
 
-        result = run_job(Path(job_dir), Path(input_path), params, file_name, progress)
+        result = run_job(
+            Path(job_dir), Path(input_path), params, file_name, progress, report_processes=report_processes
+        )
         conn.send(("done", result))
     except DstError as exc:
         conn.send(("error", exc.code, str(exc)))
@@ -89,6 +100,7 @@ def run_sandboxed(job_id: str, store: JobStore, artifacts: ArtifactStore, settin
             job.params,
             job.file_name,
             settings.job_memory_mb,
+            settings.report_processes,
         ),
         name=f"dst-job-{job_id[:8]}",
         daemon=True,

@@ -52,6 +52,13 @@ class Settings(BaseSettings):
         le=1_000_000,
         description="Address-space limit of one job's process, MB (OCCT needs ~1 GB to load).",
     )
+    report_processes: int | None = Field(
+        None,
+        ge=1,
+        le=256,
+        description="Helper processes one job's report may fork at once (Linux); default: the CPUs. "
+        "Lower it when a machine runs several jobs at once.",
+    )
     max_attempts: int = Field(
         2, ge=1, le=5, description="Runs of a job interrupted by a crashed worker before it is failed."
     )

@@ -152,6 +152,8 @@ def test_report_measures_a_users_mesh(make_step, tmp_path):
         (["--baselines", "occt_fast"], 1, "need --report"),
         (["--plot", "x.gif", "--report", "r.json"], 1, ".svg or .png"),
         (["--html", "r.html"], 1, "need --report"),
+        (["--processes", "0", "--report", "r.json"], 2, "from 1 to 256"),
+        (["--processes", "2"], 1, "need --report"),
     ],
 )
 def test_report_option_errors(make_step, tmp_path, extra, code, needle):

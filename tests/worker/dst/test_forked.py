@@ -87,3 +87,40 @@ def test_inline_tasks_run_in_this_process():
         assert not tasks.forked
         pid, _ = tasks.submit(_pid_and_sum, np.ones(3)).result()
     assert pid == os.getpid()
+
+
+def _dead(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            return any(line.startswith("State:") and "Z" in line.split()[1] for line in f)
+    except FileNotFoundError:
+        return True
+
+
+@needs_fork
+def test_helpers_die_with_a_killed_job_process():
+    """A job process killed for its timeout takes its helpers with it (no orphans running on)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, time\n"
+        "from worker.dst.forked import TaskGroup\n"
+        "from tests.worker.dst.test_forked import _span\n"
+        "with TaskGroup(forked=True) as g:\n"
+        "    t = g.submit(_span, 60.0)\n"
+        "    print(t.pid, flush=True)\n"
+        "    time.sleep(60)\n"
+    )
+    job = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        helper = int(job.stdout.readline())
+        assert not _dead(helper)
+        job.kill()
+        job.wait(10)
+        deadline = time.monotonic() + 10
+        while not _dead(helper) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert _dead(helper)
+    finally:
+        job.kill()
