@@ -1,8 +1,11 @@
 """Benchmark: DST against OCCT's conventional mesh at PrusaSlicer's import setting, same run.
 
-Each measurement runs in a fresh spawned process, so peak memory (max RSS, OCP's ~280 MB import
-included) belongs to that job alone. Seconds are the wall time of the work (STEP read included for
-both), not of the process start-up. Prints one table; ratios are DST / conventional.
+Each measurement runs in a fresh spawned process. Seconds are the wall time of the work (STEP read
+included for both), not of the process start-up; memory ("MB") is the peak resident memory of the
+work above what the process held after its imports (Linux: the peak is reset after the imports),
+"peak MB" the process's whole peak, imports (OCCT, scipy: ~460 MB) included. Ratios are DST /
+conventional. The report's helper processes (forked: they share the parent's pages) are shown by
+their largest peak resident size. A last table shows memory against the plane count.
 
 Targets (issue 2): the B-spline hemisphere R = 20 mm at h = 0.2 mm under 1 s; ``ec_soapbox-A.stp`` at
 h = 0.2 mm within 3x the conventional mesh's time; memory growing with the part, not planes squared.
@@ -25,32 +28,37 @@ sys.path.insert(0, str(ROOT))
 CORPUS = ROOT.parent / "shared" / "corpus"
 
 
-def _dst(path: str, layer: float, q) -> None:
+def _dst(path: str, layer: float, q, with_report: bool = True) -> None:
     from worker.dst.baselines import DEFAULT_BASELINES
     from worker.dst.params import SliceParams
     from worker.dst.pipeline import slice_step
     from worker.dst.report import build_report
 
     params = SliceParams(layer_height=layer)
+    base = _reset_peak()
     t = time.perf_counter()
     mesh = slice_step(path, params)
     sec = time.perf_counter() - t
-    rss = _rss_mb()
-    t = time.perf_counter()
-    report = build_report(mesh.part, params, file_name=path, dst=mesh, baselines=DEFAULT_BASELINES)
-    report_sec = time.perf_counter() - t
-    q.put(
-        {
-            "seconds": sec,
-            "triangles": len(mesh.triangles),
-            "rss_mb": rss,
-            "stages": mesh.stats["timings_s"],
-            "report_seconds": report_sec,
-            "reference_seconds": report.reference.seconds,
-            "baseline_seconds": sum(m.seconds or 0.0 for m in report.meshes if m.kind == "baseline"),
-            "report_rss_mb": _rss_mb(),
-        }
-    )
+    out = {
+        "seconds": sec,
+        "triangles": len(mesh.triangles),
+        "planes": len(mesh.planes),
+        "rss_mb": _rss_mb(),
+        "work_mb": _peak_mb() - base,
+        "stages": mesh.stats["timings_s"],
+    }
+    if with_report:
+        base = _reset_peak()
+        t = time.perf_counter()
+        report = build_report(mesh.part, params, file_name=path, dst=mesh, baselines=DEFAULT_BASELINES)
+        out.update(
+            report_seconds=time.perf_counter() - t,
+            reference_seconds=report.reference.seconds,
+            baseline_seconds=sum(m.seconds or 0.0 for m in report.meshes if m.kind == "baseline"),
+            report_work_mb=_peak_mb() - base,
+            helper_mb=resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0,
+        )
+    q.put(out)
 
 
 def _conventional(path: str, layer: float, q) -> None:
@@ -58,11 +66,13 @@ def _conventional(path: str, layer: float, q) -> None:
 
     from worker.dst.step_io import read_step
 
+    base = _reset_peak()
     t = time.perf_counter()
     part = read_step(path)
     comp = part.compound
     BRepMesh_IncrementalMesh(comp, 0.005, False, 1.0, True)  # PrusaSlicer 2.5 STEP import setting
     sec = time.perf_counter() - t
+    work = _peak_mb() - base
     from OCP.BRep import BRep_Tool
     from OCP.TopAbs import TopAbs_FACE
     from OCP.TopExp import TopExp_Explorer
@@ -75,17 +85,37 @@ def _conventional(path: str, layer: float, q) -> None:
         tri = BRep_Tool.Triangulation_s(TopoDS.Face(exp.Current()), TopLoc_Location())
         n += tri.NbTriangles() if tri is not None else 0
         exp.Next()
-    q.put({"seconds": sec, "triangles": n, "rss_mb": _rss_mb()})
+    q.put({"seconds": sec, "triangles": n, "rss_mb": _rss_mb(), "work_mb": work})
 
 
 def _rss_mb() -> float:
+    """Peak resident memory of this process so far (imports included), MB."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def measure(fn, path: str, layer: float) -> dict:
+def _status_mb(key: str) -> float:
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith(key + ":"):
+                return int(line.split()[1]) / 1024.0
+    raise KeyError(key)
+
+
+def _reset_peak() -> float:
+    """Linux: restart the peak-RSS count here (after the imports); return the resident MB now."""
+    with open("/proc/self/clear_refs", "w") as f:
+        f.write("5")
+    return _status_mb("VmRSS")
+
+
+def _peak_mb() -> float:
+    return _status_mb("VmHWM")
+
+
+def measure(fn, path: str, layer: float, *extra) -> dict:
     ctx = mp.get_context("spawn")
     q = ctx.Queue()
-    p = ctx.Process(target=fn, args=(path, layer, q))
+    p = ctx.Process(target=fn, args=(path, layer, q, *extra))
     p.start()
     out = q.get(timeout=3600)
     p.join()
@@ -102,6 +132,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--layer-height", type=float, default=0.2)
     ap.add_argument("--parts", nargs="*", help="extra STEP files to measure")
+    ap.add_argument(
+        "--no-scaling", dest="scaling", action="store_false", help="skip the memory-against-planes table"
+    )
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp())
     parts = [("hemisphere R20 (B-spline)", hemisphere_step(tmp))]
@@ -110,7 +143,11 @@ def main() -> None:
             parts.append((rel, CORPUS / rel))
     parts += [(p, Path(p)) for p in args.parts or []]
 
-    head = f"{'part':32} {'DST s':>7} {'conv s':>7} {'ratio':>6} {'DST tris':>9} {'conv tris':>9} {'DST MB':>7} {'conv MB':>7}"
+    head = (
+        f"{'part':32} {'DST s':>7} {'conv s':>7} {'ratio':>6} {'DST tris':>9} {'conv tris':>9} "
+        f"{'DST MB':>7} {'conv MB':>7} {'peak MB':>7}"
+    )
+    print("Seconds and memory of the work (imports excluded): DST against OCCT's conventional mesh")
     print(head)
     print("-" * len(head))
     reports = []
@@ -120,20 +157,39 @@ def main() -> None:
         reports.append((name, dst))
         print(
             f"{name[:32]:32} {dst['seconds']:7.2f} {conv['seconds']:7.2f} {dst['seconds'] / conv['seconds']:6.2f} "
-            f"{dst['triangles']:9d} {conv['triangles']:9d} {dst['rss_mb']:7.0f} {conv['rss_mb']:7.0f}",
+            f"{dst['triangles']:9d} {conv['triangles']:9d} {dst['work_mb']:7.0f} {conv['work_mb']:7.0f} "
+            f"{dst['rss_mb']:7.0f}",
             flush=True,
         )
         print(f"{'':32}   DST stages: {dst['stages']}", flush=True)
     print()
-    head = f"{'part':32} {'DST s':>7} {'report s':>9} {'report/DST':>10} {'reference s':>11} {'baselines s':>11} {'MB':>6}"
+    print("The deviation report (3 default baselines) against the DST build it measures")
+    head = (
+        f"{'part':32} {'DST s':>7} {'report s':>9} {'report/DST':>10} {'reference s':>11} "
+        f"{'baselines s':>11} {'MB':>6} {'helper MB':>9}"
+    )
     print(head)
     print("-" * len(head))
     for name, dst in reports:
         print(
             f"{name[:32]:32} {dst['seconds']:7.2f} {dst['report_seconds']:9.2f} "
             f"{dst['report_seconds'] / dst['seconds']:10.2f} {dst['reference_seconds']:11.2f} "
-            f"{dst['baseline_seconds']:11.2f} {dst['report_rss_mb']:6.0f}"
+            f"{dst['baseline_seconds']:11.2f} {dst['report_work_mb']:6.0f} {dst['helper_mb']:9.0f}",
+            flush=True,
         )
+    if args.scaling:
+        print()
+        print("Memory against plane count: the hemisphere at finer layers (DST build only)")
+        head = f"{'layer mm':>8} {'planes':>7} {'DST s':>7} {'triangles':>10} {'MB':>6} {'MB / 100k triangles':>20}"
+        print(head)
+        print("-" * len(head))
+        for h in (0.2, 0.1, 0.05, 0.025):
+            r = measure(_dst, str(parts[0][1]), h, False)
+            print(
+                f"{h:8.3f} {r['planes']:7d} {r['seconds']:7.2f} {r['triangles']:10d} {r['work_mb']:6.0f} "
+                f"{r['work_mb'] / r['triangles'] * 1e5:20.1f}",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":
