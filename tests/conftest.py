@@ -13,7 +13,7 @@ CORPUS = Path(__file__).resolve().parents[1].parent / "shared" / "corpus"
 
 def build_part(kind: str, **kw):
     """An analytic part as a build123d shape (mm). Kinds: hemisphere, torus, cone, tube, step_box,
-    tangent_features, dome_below_top, tilted_boss."""
+    tangent_features, dome_below_top, tilted_boss, through_hole, lying_cylinder."""
     import build123d as bd
 
     if kind == "hemisphere":
@@ -68,6 +68,21 @@ def build_part(kind: str, **kw):
         boss = bd.Pos(-6, 0, dz) * bd.Cylinder(5.0, 8.0).rotate(bd.Axis.X, 25)
         below = bd.Box(60, 60, 10, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MAX))
         return plate + post + (boss - below)
+    if kind == "through_hole":
+        # A 30 x 10 x 8 block with a horizontal hole (r 2, along x) whose top line lies ``clearance``
+        # mm above the middle-mode plane 4.1 (h = 0.2): that plane cuts the block into two rectangles.
+        top = 4.1 + kw["clearance"]
+        block = bd.Box(30, 10, 8, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MIN))
+        return block - bd.Pos(0, 0, top - 2.0) * bd.Cylinder(2.0, 40, rotation=(0, 90, 0))
+    if kind == "lying_cylinder":
+        # A cylinder (r 3, length 20, along x) lying on a plate, its top line ``clearance`` mm above
+        # the middle-mode plane 4.1 (h = 0.2), and a taller 3 x 3 post beside it.
+        top = 4.1 + kw["clearance"]
+        plate = bd.Box(30, 10, 1, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MIN))
+        post = bd.Pos(12, 0, 0) * bd.Box(3, 3, 8, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MIN))
+        cyl = bd.Pos(-2, 0, top - 3.0) * bd.Cylinder(3.0, 20, rotation=(0, 90, 0))
+        below = bd.Box(60, 60, 10, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MAX))
+        return plate + post + (cyl - below)
     raise ValueError(kind)
 
 

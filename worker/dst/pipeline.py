@@ -136,6 +136,7 @@ def slice_part(
         "tangent_segments": 0,
         "newton_failures": 0,
         "outside_face_points": 0,
+        "reordered_crossings": 0,
         "max_gap_at": "",
     }
     for si, (mesh, topo) in enumerate(zip(meshes, topos, strict=True)):

@@ -107,6 +107,7 @@ class SamplingStats:
     tangent_segments: int = 0  # segments kept over budget where the plane is tangent to the surface
     newton_failures: int = 0  # seeds with no exact point (dropped; see tangent_segments)
     outside_face_points: int = 0  # points beyond a face's trim (a nearly tangent edge), dropped
+    reordered_crossings: int = 0  # crossings put at the section point nearest them (see _solve_crossing)
     max_gap_mm: float = 0.0
     max_gap_at: str = ""
 
@@ -217,6 +218,13 @@ class RingSampler:
         face = int(mesh.tri_face[t])
         try:
             x, y, _, _, _ = mesh.faces[face].root_on_uv_segment(ua, va, ub, vb, zc)
+            near = topo.cross_xyz[c]
+            if math.hypot(x - near[0], y - near[1]) > SUSPECT_DEFLECTIONS * mesh.deflection:
+                # Along an edge that runs nearly level over the surface (a long triangle across a
+                # ridge or a valley just off the plane), the surface's root can lie far from the
+                # edge's crossing, out of order with its neighbours along the section (a ring that
+                # doubles back). The point of the section nearest the crossing keeps the order.
+                x, y = self._nearest_on_section(t, a, b, ua, va, ub, vb, zc, (x, y))
         except ExactFailure:
             # The surface at a node's (u, v) can differ from the node (an edge point) by the file's
             # tolerance, so a plane that close to a node is not bracketed: Newton from the seed.
@@ -233,6 +241,31 @@ class RingSampler:
                 ) from None
             x, y, _ = pts[0]
         return x, y, zc
+
+    def _nearest_on_section(
+        self, t: int, a: int, b: int, ua, va, ub, vb, zc: float, root: tuple[float, float]
+    ) -> tuple[float, float]:
+        """Newton (the smallest 3D move onto ``z = zc``) from the topology crossing of edge a-b in
+        triangle ``t``; ``root`` (the level point along the edge) if that fails or lands farther."""
+        mesh = self.mesh
+        za, zb = mesh.xyz[a, 2], mesh.xyz[b, 2]
+        frac = min(1.0, max(0.0, (zc - za) / (zb - za))) if zb != za else 0.5
+        face = int(mesh.tri_face[t])
+        pts, ok, uv = self._newton(
+            np.array([face]),
+            np.array([ua + frac * (ub - ua)]),
+            np.array([va + frac * (vb - va)]),
+            zc,
+            np.array([2.0 * self.tri_uv_scale[t]]),
+        )
+        seed = mesh.xyz[a] + frac * (mesh.xyz[b] - mesh.xyz[a])
+        if not ok[0] or not mesh.faces[face].contains(float(uv[0, 0]), float(uv[0, 1]), tol=TRIM_TOL_MM):
+            return root
+        x, y = float(pts[0, 0]), float(pts[0, 1])
+        if math.hypot(x - seed[0], y - seed[1]) >= math.hypot(root[0] - seed[0], root[1] - seed[1]):
+            return root
+        self.stats.reordered_crossings += 1
+        return x, y
 
     def _root_on_brep_edge(self, ei: int, a: int, b: int, zc: float) -> tuple[float, float, float]:
         ev = self.mesh.edges[ei]

@@ -253,3 +253,31 @@ def test_a_plane_just_below_the_top_of_a_tilted_rim_gets_its_loop(make_step, mon
     assert on_cap.any() and on_wall.any()
     monkeypatch.setattr("worker.dst.pipeline.snap_local_extremes", lambda mesh, planes: 0)
     assert len(lens(slice_step(path, params))) == 0
+
+
+@pytest.mark.parametrize(
+    ("kind", "radius", "perimeter"),
+    [
+        # two rectangles 30 long, from the sliver's edge (half-width w) to the block's side at 5
+        ("through_hole", 2.0, lambda w: 4 * (35.0 - w)),
+        # the sliver (20 long, 2w wide) and the 3 x 3 post
+        ("lying_cylinder", 3.0, lambda w: 2 * (20.0 + 2 * w) + 12.0),
+    ],
+)
+@pytest.mark.parametrize("clearance", [0.005, 0.05])
+def test_a_plane_just_below_a_horizontal_ridge_gets_straight_single_sides(
+    make_step, kind, radius, perimeter, clearance
+):
+    """The top line of a horizontal cylinder a few micrometres above a plane: the section's sides
+    along it are straight lines, and the topology mesh's long triangles across the ridge cross the
+    plane far from where the surface does. The rings must run along each side once (they used to
+    double back: same lines, so the two-sided distance saw nothing, but tens of mm too long)."""
+    mesh = slice_step(make_step(kind, clearance=clearance), SliceParams(layer_height=0.2))
+    j = 20
+    assert mesh.planes.z[j] == pytest.approx(4.1)
+    assert_watertight(mesh)
+    e, plane = ring_edges(mesh)
+    e = e[plane == j]
+    length = np.linalg.norm(mesh.vertices[e[:, 0]] - mesh.vertices[e[:, 1]], axis=1).sum()
+    w = math.sqrt(2 * radius * clearance - clearance**2)  # the sliver's half-width at the plane
+    assert length == pytest.approx(perimeter(w), abs=1e-4)
