@@ -109,6 +109,22 @@ def cut_mesh(vertices: np.ndarray, triangles: np.ndarray, heights: np.ndarray) -
     )
 
 
+def offset_cut(cut: MeshCut, first: int, n_planes: int) -> MeshCut:
+    """A cut made at planes ``first``, ``first + 1``, ... renumbered as part of ``n_planes`` planes."""
+    loops = np.zeros(n_planes, dtype=np.int64)
+    chains = np.zeros(n_planes, dtype=np.int64)
+    loops[first : first + len(cut.loops)] = cut.loops
+    chains[first : first + len(cut.loops)] = cut.open_chains
+    return MeshCut(
+        seg=cut.seg,
+        seg_plane=cut.seg_plane + first,
+        loops=loops,
+        open_chains=chains,
+        vertices=cut.vertices,
+        vertex_plane=cut.vertex_plane + first,
+    )
+
+
 def _empty_cut(n_planes: int) -> MeshCut:
     z = np.zeros(n_planes, dtype=np.int64)
     return MeshCut(

@@ -29,12 +29,14 @@ from pydantic import BaseModel, ConfigDict, Field
 from worker.dst.baselines import BASELINE_PRESETS, DEFAULT_BASELINES, Preset, parse_baselines
 from worker.dst.deviation import (
     DENSE_SPACING_MM,
+    LayerMetrics,
     SegmentSet,
     compare,
     curve_lengths,
     cut_mesh,
     loop_successors,
     loops_to_segments,
+    offset_cut,
     span_curvatures,
 )
 from worker.dst.errors import TessellationError
@@ -56,6 +58,9 @@ REFERENCE_CHORD_MM = 1e-3
 REFERENCE_SEGMENT_MM = 2.0
 # Cura drops section loops shorter than this (minimum_polygon_circumference default)
 CURA_MIN_CIRCUMFERENCE_MM = 1.0
+# Plane ranges measured by one helper hold at least this much work (``_plane_costs`` units: searched
+# points; ~0.2 s on the development machine): smaller ones cost more to fork than they save.
+MIN_MEASURE_CHUNK = 100_000
 VOLUME_WARN_REL = 0.01  # a mesh enclosing 1% more or less than the solid is worth a warning
 
 
@@ -332,16 +337,25 @@ def _build_report(
         )
     todo.extend(meshes)
     report("measuring meshes", 0.4)
-    # Measured in helper processes, longest first so that they finish together; one k-d tree
-    # thread each when they run side by side.
+    # Measured in helper processes, each mesh in plane ranges of about equal work so that the
+    # helpers finish together, largest first; one k-d tree thread each when they run side by side.
     workers = 1 if tasks.forked and tasks.limit > 1 else -1
-    measuring: dict[int, Task] = {}
+    ref_per_plane = np.bincount(ref_plane, minlength=n_planes)
+    measuring: dict[int, list[tuple[int, int, Task]]] = {}
 
     def start(ms: list[MeshInput]) -> None:
-        for m in sorted(ms, key=lambda m: _cut_size(m, heights), reverse=True):
-            measuring[id(m)] = tasks.submit(
-                _measure, m, heights, planes_z, ref_set, ref_perimeter, loops_exact, n_planes, workers
+        costs = {id(m): _plane_costs(m, heights, ref_per_plane) for m in ms}
+        total = sum(c.sum() for c in costs.values())
+        chunk = max(total / (3 * tasks.limit), MIN_MEASURE_CHUNK) if tasks.forked else np.inf
+        jobs = []
+        for m in ms:
+            for j0, j1 in _plane_ranges(costs[id(m)], chunk):
+                jobs.append((float(costs[id(m)][j0:j1].sum()), m, j0, j1))
+        for _, m, j0, j1 in sorted(jobs, key=lambda job: job[0], reverse=True):
+            task = tasks.submit(
+                _measure_planes, m, heights, j0, j1, ref_set, ref_perimeter, n_planes, workers
             )
+            measuring.setdefault(id(m), []).append((j0, j1, task))
 
     if baselines and not side.ready():
         start(todo)  # while OCCT finishes the baselines
@@ -353,7 +367,12 @@ def _build_report(
         start(todo + occt.baselines)
     todo.extend(occt.baselines)
     report("measuring meshes", 0.7)
-    results = [measuring[id(m)].result() for m in todo]
+    results = [
+        _mesh_report(
+            m, [t.result() for _, _, t in sorted(measuring[id(m)], key=lambda r: r[0])], planes_z, loops_exact
+        )
+        for m in todo
+    ]
     exact_volume = occt.volume_mm3
     for r in results:
         r.volume_rel_err = (r.volume_mm3 - exact_volume) / exact_volume if exact_volume > 0 else None
@@ -426,26 +445,56 @@ def _build_report(
     )
 
 
-def _measure(
+@dataclass
+class _Measured:
+    """One mesh measured at planes j0 .. j1 - 1 (per-plane arrays of that length); the mesh-wide
+    numbers come with the range that starts at plane 0."""
+
+    j0: int
+    metrics: LayerMetrics
+    mesh_wide: tuple[int, int, float] | None  # open edges, non-manifold edges, volume
+
+
+def _measure_planes(
     m: MeshInput,
     heights: np.ndarray,
-    planes_z: np.ndarray,
+    j0: int,
+    j1: int,
     ref_set: SegmentSet,
     ref_perimeter: np.ndarray,
-    loops_exact: np.ndarray,
     n_planes: int,
     workers: int,
-) -> MeshReport:
-    """Cut and measure one mesh (pure numpy: runs in a forked helper); ``volume_rel_err`` is left to
-    the caller, which has the exact volume."""
+) -> _Measured:
+    """Cut one mesh at planes j0 .. j1 - 1 and measure the cuts (pure numpy: runs in a forked helper)."""
     v = np.array(m.vertices, dtype=np.float64)
     tr = np.asarray(m.triangles, dtype=np.int64).reshape(-1, 3)
     if len(v):
         v[:, 2] -= v[:, 2].min()  # the slicer drops the mesh onto the bed
-    cut = cut_mesh(v, tr, heights)
+    cut = offset_cut(cut_mesh(v, tr, heights[j0:j1]), j0, n_planes)
     met = compare(cut, ref_set, ref_perimeter, n_planes, workers=workers)
-    open_edges, nonmanifold = edge_defects(tr, len(v)) if len(tr) else (0, 0)
-    volume = signed_volume(v, tr) if len(tr) else 0.0
+    part = LayerMetrics(**{k: getattr(met, k)[j0:j1] for k in LayerMetrics.__dataclass_fields__})
+    mesh_wide = None
+    if j0 == 0:
+        open_edges, nonmanifold = edge_defects(tr, len(v)) if len(tr) else (0, 0)
+        mesh_wide = (open_edges, nonmanifold, signed_volume(v, tr) if len(tr) else 0.0)
+    return _Measured(j0, part, mesh_wide)
+
+
+def _mesh_report(
+    m: MeshInput, parts: list[_Measured], planes_z: np.ndarray, loops_exact: np.ndarray
+) -> MeshReport:
+    """The mesh's report from its measured plane ranges (in plane order, covering every plane);
+    ``volume_rel_err`` is left to the caller, which has the exact volume."""
+    met = LayerMetrics(
+        **{
+            k: np.concatenate([getattr(p.metrics, k) for p in parts])
+            for k in LayerMetrics.__dataclass_fields__
+        }
+    )
+    n_planes = len(planes_z)
+    assert len(met.vertex_dev) == n_planes, "the plane ranges must cover every plane once"
+    open_edges, nonmanifold, volume = next(p.mesh_wide for p in parts if p.mesh_wide is not None)
+    n_tri = len(np.asarray(m.triangles).reshape(-1, 3))
     layers = [
         Layer(
             index=j,
@@ -474,10 +523,10 @@ def _measure(
         name=m.name,
         kind=m.kind,
         description=m.description,
-        triangles=len(tr),
-        vertices=len(v),
-        stl_bytes=84 + 50 * len(tr),
-        watertight=open_edges == 0 and nonmanifold == 0 and len(tr) > 0,
+        triangles=n_tri,
+        vertices=len(m.vertices),
+        stl_bytes=84 + 50 * n_tri,
+        watertight=open_edges == 0 and nonmanifold == 0 and n_tri > 0,
         open_edges=open_edges,
         nonmanifold_edges=nonmanifold,
         volume_mm3=volume,
@@ -487,13 +536,33 @@ def _measure(
     )
 
 
-def _cut_size(m: MeshInput, heights: np.ndarray) -> int:
-    """Segments the mesh's cut will have (triangle-plane crossings): what measuring it costs."""
-    if not len(m.triangles):
-        return 0
-    z = np.asarray(m.vertices)[:, 2]
-    tz = (z - z.min())[np.asarray(m.triangles).reshape(-1, 3)]
-    return int((np.searchsorted(heights, tz.max(axis=1)) - np.searchsorted(heights, tz.min(axis=1))).sum())
+def _plane_costs(m: MeshInput, heights: np.ndarray, ref_per_plane: np.ndarray) -> np.ndarray:
+    """Work of measuring the mesh at each plane: its cut's segments (two searches each: vertex and
+    midpoint) and the reference's spans (two points each)."""
+    n = len(heights)
+    crossings = np.zeros(n + 1)
+    if len(m.triangles):
+        z = np.asarray(m.vertices)[:, 2]
+        tz = (z - z.min())[np.asarray(m.triangles).reshape(-1, 3)]
+        first = np.searchsorted(heights, tz.min(axis=1))
+        stop = np.searchsorted(heights, tz.max(axis=1))
+        np.add.at(crossings, first, 1.0)
+        np.add.at(crossings, stop, -1.0)
+    return 2.0 * np.cumsum(crossings)[:n] + 2.0 * ref_per_plane
+
+
+def _plane_ranges(cost: np.ndarray, chunk: float) -> list[tuple[int, int]]:
+    """Consecutive plane ranges covering every plane, each of about ``chunk`` work (at least one)."""
+    n = len(cost)
+    parts = 1
+    if np.isfinite(chunk) and chunk > 0:
+        parts = max(1, min(n, round(float(cost.sum()) / chunk)))
+    if parts == 1:
+        return [(0, n)]
+    cum = np.cumsum(cost)
+    cuts = np.searchsorted(cum, cum[-1] * np.arange(1, parts) / parts)
+    edges = np.unique(np.concatenate([[0], np.clip(cuts, 1, n - 1), [n]]))
+    return list(zip(edges[:-1].tolist(), edges[1:].tolist(), strict=True))
 
 
 def _num(x: float) -> float | None:

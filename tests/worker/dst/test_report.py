@@ -234,9 +234,15 @@ def _numbers(report: Report) -> list:
     return out
 
 
-def test_forked_helpers_and_one_process_give_the_same_report(hemisphere):
+@pytest.mark.parametrize("min_chunk", [None, 1])
+def test_forked_helpers_and_one_process_give_the_same_report(hemisphere, monkeypatch, min_chunk):
     """The baselines meshed in a forked child on one thread, the meshes measured in forked
-    children, against everything in this process: the same numbers."""
+    children (with ``min_chunk`` 1: each in many plane ranges, merged back), against everything in
+    this process: the same numbers."""
+    from worker.dst import report as report_mod
+
+    if min_chunk is not None:
+        monkeypatch.setattr(report_mod, "MIN_MEASURE_CHUNK", min_chunk)
     path, mesh, _, _ = hemisphere
     params = SliceParams(layer_height=0.2)
     kw = dict(file_name=str(path), dst=mesh, baselines=["occt_fast", "occt_high_quality"])
@@ -269,3 +275,16 @@ def test_a_crash_while_meshing_a_baseline_ends_the_report_cleanly(hemisphere, mo
     monkeypatch.setattr(report_mod, "conventional_mesh", crash)
     with pytest.raises(TessellationError, match=r"baselines: .*signal 11.*'none'"):
         build_report(mesh.part, SliceParams(layer_height=0.2), file_name=str(path), dst=mesh)
+
+
+def test_plane_ranges_cover_every_plane_once_in_about_equal_work():
+    from worker.dst.report import _plane_ranges
+
+    cost = np.array([5.0, 1, 1, 1, 1, 1, 0, 0, 10, 1, 1, 1])
+    ranges = _plane_ranges(cost, chunk=8.0)
+    assert ranges[0][0] == 0 and ranges[-1][1] == len(cost)
+    assert all(a[1] == b[0] for a, b in zip(ranges[:-1], ranges[1:], strict=True))  # no gaps, no overlaps
+    assert all(j0 < j1 for j0, j1 in ranges)
+    assert len(ranges) == 3  # 23 units of work in chunks of about 8
+    assert _plane_ranges(cost, chunk=np.inf) == [(0, len(cost))]
+    assert _plane_ranges(np.zeros(0), chunk=1.0) == [(0, 0)]
