@@ -39,7 +39,7 @@ from worker.dst.deviation import (
     offset_cut,
     span_curvatures,
 )
-from worker.dst.errors import TessellationError
+from worker.dst.errors import ResourceLimitExceeded, TessellationError
 from worker.dst.forked import Task, TaskDied, TaskGroup
 from worker.dst.meshops import edge_defects, signed_volume
 from worker.dst.params import SliceParams
@@ -135,6 +135,17 @@ def _occt_result(side: Task) -> OcctSide:
         raise TessellationError(
             f"OCCT failed while meshing the conventional baselines: {exc}; the report can be made "
             "without them (baselines 'none')"
+        ) from exc
+
+
+def _measured(task: Task) -> _Measured:
+    try:
+        return task.result()
+    except TaskDied as exc:
+        # numpy work only: a helper that dies without a word was killed, in practice for memory
+        raise ResourceLimitExceeded(
+            f"a helper measuring the meshes died ({exc}), most likely out of memory: measure fewer "
+            "baselines, or use fewer helpers (--processes 1, DST_REPORT_PROCESSES=1)"
         ) from exc
 
 
@@ -369,7 +380,10 @@ def _build_report(
     report("measuring meshes", 0.7)
     results = [
         _mesh_report(
-            m, [t.result() for _, _, t in sorted(measuring[id(m)], key=lambda r: r[0])], planes_z, loops_exact
+            m,
+            [_measured(t) for _, _, t in sorted(measuring[id(m)], key=lambda r: r[0])],
+            planes_z,
+            loops_exact,
         )
         for m in todo
     ]

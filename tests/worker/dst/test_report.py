@@ -288,3 +288,28 @@ def test_plane_ranges_cover_every_plane_once_in_about_equal_work():
     assert len(ranges) == 3  # 23 units of work in chunks of about 8
     assert _plane_ranges(cost, chunk=np.inf) == [(0, len(cost))]
     assert _plane_ranges(np.zeros(0), chunk=1.0) == [(0, 0)]
+
+
+def test_a_measuring_helper_that_dies_is_a_resource_error(hemisphere, monkeypatch):
+    """A helper killed while measuring (the OOM killer's way) ends the report with a clear
+    ``resource_limit`` error saying what to change, not an internal error."""
+    import faulthandler
+    import os
+    import signal
+
+    from worker.dst import report as report_mod
+    from worker.dst.errors import ResourceLimitExceeded
+    from worker.dst.forked import fork_available
+
+    if not fork_available():
+        pytest.skip("fork is used on Linux only")
+    path, mesh, _, _ = hemisphere
+
+    def killed(*args, **kwargs):
+        faulthandler.disable()
+        os.kill(os.getpid(), signal.SIGKILL)
+
+    monkeypatch.setattr(report_mod, "_measure_planes", killed)
+    with pytest.raises(ResourceLimitExceeded, match=r"signal 9.*--processes 1") as info:
+        build_report(mesh.part, SliceParams(layer_height=0.2), file_name=str(path), dst=mesh, baselines=[])
+    assert info.value.code == "resource_limit"
