@@ -69,7 +69,7 @@ def _add_slice_parser(sub: argparse._SubParsersAction) -> None:
         "vertex rings lie exactly on those planes.",
     )
     p.add_argument("input", help="STEP file (AP203, AP214, AP242)")
-    p.add_argument("-o", "--output", required=True, help="STL file to write")
+    p.add_argument("-o", "--output", required=True, help="STL file to write (.3mf: a 3MF file)")
     _add_slicing_options(p)
     p.add_argument("--ascii", action="store_true", help="write ASCII STL instead of binary")
     p.add_argument(
@@ -143,6 +143,9 @@ def _cmd_slice(args: argparse.Namespace) -> int:
     if not os.path.isfile(args.input):
         raise _UserError(f"input file not found: {args.input}")
     _check_output(args.output)
+    three_mf = args.output.lower().endswith(".3mf")
+    if three_mf and args.ascii:
+        raise _UserError("--ascii is for STL output; a .3mf file is always a zip of XML")
     _check_report_outputs(args, args.report)
     if args.report:
         from worker.dst.baselines import parse_baselines  # noqa: PLC0415
@@ -154,7 +157,7 @@ def _cmd_slice(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     progress = _progress(args, start)
     mesh = slice_step(args.input, params, progress=progress)
-    size = mesh.write_stl(args.output, ascii=args.ascii)
+    size = mesh.write_3mf(args.output) if three_mf else mesh.write_stl(args.output, ascii=args.ascii)
     if not args.quiet:
         st = mesh.stats
         print(

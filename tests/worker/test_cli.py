@@ -29,6 +29,18 @@ def test_slice_writes_a_binary_stl_and_reports_progress(make_step, tmp_path):
     assert np.isclose(out.stat().st_size, 84 + 50 * len(mesh.faces))
 
 
+def test_3mf_output_by_extension(make_step, tmp_path):
+    out = tmp_path / "part.3mf"
+    step = make_step("cone", radius=3, height=2)
+    res = run_dst("slice", str(step), "-o", str(out), "-q")
+    assert res.returncode == 0, res.stderr
+    mesh = trimesh.load(out, file_type="3mf", force="mesh")
+    assert mesh.is_watertight and mesh.bounds[0][2] == 0.0
+    res = run_dst("slice", str(step), "-o", str(tmp_path / "b.3mf"), "--ascii")
+    assert res.returncode == 1 and "--ascii is for STL" in res.stderr
+    assert not (tmp_path / "b.3mf").exists()
+
+
 def test_ascii_output(make_step, tmp_path):
     out = tmp_path / "part.stl"
     res = run_dst("slice", str(make_step("cone", radius=3, height=2)), "-o", str(out), "--ascii", "-q")

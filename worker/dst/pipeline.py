@@ -21,7 +21,7 @@ from worker.dst.planes import PlanePlan, plan_planes
 from worker.dst.sampling import RingSampler, VertexPool
 from worker.dst.sections import cut_topology
 from worker.dst.step_io import LoadedPart, read_step
-from worker.dst.stl_io import write_stl
+from worker.dst.stl_io import write_3mf, write_stl
 from worker.dst.tessellate import tessellate_solid
 from worker.dst.topomesh import build_topomesh
 
@@ -58,6 +58,9 @@ class DstMesh:
 
     def write_stl(self, path: str | os.PathLike[str], *, ascii: bool = False) -> int:
         return write_stl(path, self.vertices32, self.triangles, ascii=ascii)
+
+    def write_3mf(self, path: str | os.PathLike[str]) -> int:
+        return write_3mf(path, self.vertices32, self.triangles)
 
 
 def slice_step(

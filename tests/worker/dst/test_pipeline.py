@@ -163,6 +163,23 @@ def test_write_binary_and_ascii_stl_round_trip(hemisphere, tmp_path):
         assert set(hemisphere.planes.z32.tolist()) <= zs
 
 
+def test_3mf_holds_the_same_float32_mesh_as_the_stl(hemisphere, tmp_path):
+    """Read back by trimesh's 3MF reader (lxml): the same indexed vertices, bit for bit as float32,
+    the same triangles, watertight, every ring exactly on its float32 plane."""
+    import trimesh
+
+    path = tmp_path / "h.3mf"
+    size = hemisphere.write_3mf(path)
+    assert size == path.stat().st_size and not (tmp_path / "h.3mf.part").exists()
+    tm = trimesh.load(path, file_type="3mf", force="mesh", process=False)
+    assert np.array_equal(np.asarray(tm.vertices, dtype=np.float32), hemisphere.vertices32)
+    assert np.array_equal(np.asarray(tm.faces), hemisphere.triangles)
+    assert tm.is_watertight and tm.volume > 0
+    ring = hemisphere.vertex_plane >= 0
+    z32 = np.asarray(tm.vertices, dtype=np.float32)[ring, 2]
+    assert np.array_equal(z32, hemisphere.planes.z32[hemisphere.vertex_plane[ring]])
+
+
 def test_jobs_beyond_the_triangle_limit_are_refused_before_sampling(make_step, monkeypatch):
     from worker.dst import constants
     from worker.dst.errors import ResourceLimitExceeded
