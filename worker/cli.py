@@ -368,11 +368,20 @@ def _worker_argv(concurrency: int, queue: str) -> list[str]:
     ]
 
 
+def _share_cpus_between_jobs(concurrency: int) -> None:
+    """Unless set, let each job's report fork as many helpers as it has CPUs to itself."""
+    from worker.dst.forked import usable_cpus  # noqa: PLC0415
+
+    os.environ.setdefault("DST_REPORT_PROCESSES", str(max(1, usable_cpus() // concurrency)))
+
+
 def _cmd_worker(args: argparse.Namespace) -> int:
+    concurrency = args.concurrency or _default_concurrency()
+    _share_cpus_between_jobs(concurrency)
     settings = _settings_or_exit()
     from worker.queue import app  # noqa: PLC0415
 
-    app.worker_main(_worker_argv(args.concurrency or _default_concurrency(), settings.queue))
+    app.worker_main(_worker_argv(concurrency, settings.queue))
     return 0
 
 

@@ -56,8 +56,8 @@ class Settings(BaseSettings):
         None,
         ge=1,
         le=256,
-        description="Helper processes one job's report may fork at once (Linux); default: the CPUs. "
-        "Lower it when a machine runs several jobs at once.",
+        description="Helper processes one job's report may fork at once (Linux); `dst worker` sets it "
+        "to the CPUs divided by its concurrency unless given.",
     )
     max_attempts: int = Field(
         2, ge=1, le=5, description="Runs of a job interrupted by a crashed worker before it is failed."

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 
@@ -182,3 +183,15 @@ def test_report_refuses_a_file_that_is_not_stl(make_step, tmp_path):
         "report", str(make_step("cone", radius=3, height=2)), str(bad), "-o", str(tmp_path / "r.json")
     )
     assert res.returncode == 1 and "mesh_read_error" in res.stderr
+
+
+def test_a_worker_shares_the_cpus_between_its_jobs_reports(monkeypatch):
+    from worker import cli
+    from worker.dst.forked import usable_cpus
+
+    monkeypatch.delenv("DST_REPORT_PROCESSES", raising=False)
+    cli._share_cpus_between_jobs(2)
+    assert os.environ["DST_REPORT_PROCESSES"] == str(max(1, usable_cpus() // 2))
+    monkeypatch.setenv("DST_REPORT_PROCESSES", "7")  # the operator's own setting wins
+    cli._share_cpus_between_jobs(2)
+    assert os.environ["DST_REPORT_PROCESSES"] == "7"
