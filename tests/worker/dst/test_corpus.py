@@ -53,8 +53,8 @@ SLOW = {
 # strict xfails (a fix turns them into failures until this list is updated).
 KNOWN_FAILURES = {
     "trj3_s1-al-214.stp": "OCCT's mesh of this solid is not manifold (2 edges)",
-    "trj7_b1-ec-214.stp": "BRepMesh cannot mesh one face (354)",
-    "trj10_b2-oc-214.stp": "BRepMesh cannot mesh one face (73)",
+    "trj7_b1-ec-214.stp": "BRepMesh cannot mesh face 354, a B-spline face BRepCheck finds invalid",
+    "trj10_b2-oc-214.stp": "BRepMesh skips face 73, a planar sliver of 1.3e-9 mm^2, leaving a hole",
     "bug32596_abc_0_13.step": "OCCT's mesh of this solid has open edges",
 }
 
