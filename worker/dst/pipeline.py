@@ -95,6 +95,17 @@ def slice_part(
             )
         )
     timings["topomesh"] = time.perf_counter() - t
+    for si, mesh in enumerate(meshes):
+        for face, area in mesh.filled_faces:
+            warnings.append(
+                f"solid {si + 1}: OCCT could not mesh face {face + 1} (a sliver of {area:.2g} mm^2, "
+                "smaller than the mesh tolerance); its hole was closed from the neighbouring faces"
+            )
+        if mesh.merged_open_nodes:
+            warnings.append(
+                f"solid {si + 1}: {mesh.merged_open_nodes} mesh node(s) on cracks were merged within "
+                "the file's own vertex tolerance to close the surface"
+            )
 
     t = time.perf_counter()
     zmin, zmax = snap_extremes(meshes)

@@ -18,15 +18,21 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from OCP.Bnd import Bnd_Box
 from OCP.BRep import BRep_Tool
 from OCP.BRepAdaptor import BRepAdaptor_Curve, BRepAdaptor_Surface
+from OCP.BRepBndLib import BRepBndLib
+from OCP.BRepGProp import BRepGProp
 from OCP.BRepMesh import BRepMesh_IncrementalMesh
 from OCP.BRepTools import BRepTools
 from OCP.collections import IndexedMap_TopoDS_Shape_TopTools_ShapeMapHasher as ShapeIndexedMap
-from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE, TopAbs_REVERSED
+from OCP.gp import gp_Pnt
+from OCP.GProp import GProp_GProps
+from OCP.ShapeAnalysis import ShapeAnalysis_Surface
+from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE, TopAbs_REVERSED, TopAbs_VERTEX
 from OCP.TopExp import TopExp, TopExp_Explorer
 from OCP.TopLoc import TopLoc_Location
-from OCP.TopoDS import TopoDS, TopoDS_Shape
+from OCP.TopoDS import TopoDS, TopoDS_Face, TopoDS_Shape
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
@@ -34,6 +40,10 @@ from scipy.spatial import cKDTree
 from worker.dst.errors import TessellationError
 from worker.dst.exact import EdgeEval, FaceEval
 from worker.dst.meshops import edge_defects, signed_volume
+
+# BRepMesh leaves a face without triangles: closed from its neighbours' nodes if its box diagonal
+# is within this many deflections (any triangle across it is then within the mesh's tolerance).
+TINY_FACE_DEFLECTIONS = 1.0
 
 
 @dataclass
@@ -46,6 +56,10 @@ class TopoMesh:
     edges: list[EdgeEval]
     edge_of: dict[tuple[int, int], int]
     deflection: float
+    # faces BRepMesh left without triangles, small enough to be closed from their neighbours'
+    # boundary nodes: (face index, area mm^2)
+    filled_faces: tuple[tuple[int, float], ...] = ()
+    merged_open_nodes: int = 0  # node copies merged within the B-rep's vertex tolerance to close cracks
 
     @property
     def n_nodes(self) -> int:
@@ -72,6 +86,7 @@ def build_topomesh(solid: TopoDS_Shape, *, deflection: float, angular: float, me
     xyz_parts, uv_parts, tri_parts, face_parts = [], [], [], []
     edge_local: list[tuple[int, np.ndarray]] = []  # (brep edge index, global-offset node ids)
     offset = 0
+    unmeshed: list[tuple[int, TopoDS_Face]] = []
     exp = TopExp_Explorer(solid, TopAbs_FACE)
     while exp.More():
         face = TopoDS.Face(exp.Current())
@@ -79,7 +94,15 @@ def build_topomesh(solid: TopoDS_Shape, *, deflection: float, angular: float, me
         loc = TopLoc_Location()
         tri = BRep_Tool.Triangulation_s(face, loc)
         if tri is None or tri.NbTriangles() == 0:
-            raise TessellationError(f"face {len(faces) + 1} could not be meshed (degenerate or invalid face)")
+            if _face_size(face) > TINY_FACE_DEFLECTIONS * deflection:
+                raise TessellationError(
+                    f"face {len(faces) + 1} could not be meshed (degenerate or invalid face)"
+                )
+            # A sliver smaller than the mesh's own tolerance (BRepMesh skips those): closed below
+            # from the nodes its neighbours put on its edges.
+            unmeshed.append((len(faces), face))
+            faces.append(FaceEval(BRepAdaptor_Surface(face)))
+            continue
         trsf = loc.Transformation()
         n = tri.NbNodes()
         pts = np.array([tri.Node(i).Coord() for i in range(1, n + 1)], dtype=np.float64).reshape(-1, 3)
@@ -121,11 +144,30 @@ def build_topomesh(solid: TopoDS_Shape, *, deflection: float, angular: float, me
     keep = (tris[:, 0] != tris[:, 1]) & (tris[:, 1] != tris[:, 2]) & (tris[:, 2] != tris[:, 0])
     tris, tri_uv, tri_face = tris[keep], tri_uv[keep], tri_face[keep]
 
+    merged_open = 0
+    if edge_defects(tris, len(xyz))[0]:
+        # Open edges: copies of a node that lie farther apart than the merge tolerance but within
+        # the B-rep's own vertex tolerance (a sloppy corner in the file). Merge those, there only.
+        remap = _merge_open_nodes(xyz, tris, min(_max_vertex_tolerance(solid), deflection))
+        if remap is not None:
+            glob, tris = remap[glob], remap[tris]
+            keep = (tris[:, 0] != tris[:, 1]) & (tris[:, 1] != tris[:, 2]) & (tris[:, 2] != tris[:, 0])
+            tris, tri_uv, tri_face = tris[keep], tri_uv[keep], tri_face[keep]
+            # renumber the nodes still in use (every node of a topology mesh is on a triangle)
+            used = np.unique(tris)
+            new_id = np.full(len(xyz), -1, dtype=np.int64)
+            new_id[used] = np.arange(len(used))
+            merged_open = len(xyz) - len(used)
+            xyz, tris, glob = xyz[used], new_id[tris], new_id[glob]
+
+    if unmeshed:
+        tris, tri_uv, tri_face = _fill_tiny_faces(xyz, tris, tri_uv, tri_face, unmeshed, merge_tol)
+
     edge_of: dict[tuple[int, int], int] = {}
     for brep_edge, ids in edge_local:
         g = glob[ids]
         for a, b in zip(g[:-1].tolist(), g[1:].tolist(), strict=True):
-            if a != b:
+            if a != b and a >= 0 and b >= 0:
                 edge_of[(a, b) if a < b else (b, a)] = brep_edge
 
     _check_closed(tris)
@@ -141,7 +183,123 @@ def build_topomesh(solid: TopoDS_Shape, *, deflection: float, angular: float, me
         edges=edges,
         edge_of=edge_of,
         deflection=deflection,
+        filled_faces=tuple((fi, _face_area(face)) for fi, face in unmeshed),
+        merged_open_nodes=merged_open,
     )
+
+
+def _max_vertex_tolerance(solid: TopoDS_Shape) -> float:
+    tol = 0.0
+    exp = TopExp_Explorer(solid, TopAbs_VERTEX)
+    while exp.More():
+        tol = max(tol, BRep_Tool.Tolerance_s(TopoDS.Vertex(exp.Current())))
+        exp.Next()
+    return tol
+
+
+def _merge_open_nodes(xyz: np.ndarray, tris: np.ndarray, tol: float) -> np.ndarray | None:
+    """A node map merging the nodes of open edges that lie within ``tol`` of each other (into the
+    lowest id of each group), or None if there are none."""
+    e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
+    n = len(xyz)
+    key = e[:, 0] * n + e[:, 1]
+    nodes = np.unique(e[~np.isin(key, e[:, 1] * n + e[:, 0])])
+    pairs = cKDTree(xyz[nodes]).query_pairs(tol, output_type="ndarray")
+    if not len(pairs):
+        return None
+    k = len(nodes)
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(k, k))
+    _, labels = connected_components(graph, directed=False)
+    first = np.full(labels.max() + 1, n, dtype=np.int64)
+    np.minimum.at(first, labels, nodes)
+    remap = np.arange(n)
+    remap[nodes] = first[labels]
+    return remap
+
+
+def _face_area(face: TopoDS_Face) -> float:
+    props = GProp_GProps()
+    BRepGProp.SurfaceProperties_s(face, props)
+    return float(props.Mass())
+
+
+def _face_size(face: TopoDS_Face) -> float:
+    """Diagonal of the face's bounding box, mm."""
+    box = Bnd_Box()
+    BRepBndLib.Add_s(face, box, False)
+    return 0.0 if box.IsVoid() else float(box.CornerMin().Distance(box.CornerMax()))
+
+
+def _fill_tiny_faces(xyz, tris, tri_uv, tri_face, unmeshed, merge_tol):
+    """Close the holes left by tiny unmeshed faces: each hole of the merged mesh (a loop of edges
+    used once) that fits in one such face's box is fanned from the corner that gives the
+    best-shaped triangles, oriented against the hole's edges, with (u, v) projected on the face.
+    Holes that fit no tiny face are left for the closedness check to refuse."""
+    e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
+    n = len(xyz)
+    key = e[:, 0] * n + e[:, 1]
+    rev = e[:, 1] * n + e[:, 0]
+    open_e = e[~np.isin(key, rev)]
+    succ: dict[int, int] = {}
+    for a, b in open_e.tolist():
+        if a in succ:  # a node on two holes (or a non-manifold spot): not a simple hole
+            return tris, tri_uv, tri_face
+        succ[a] = b
+    boxes = []
+    for fi, face in unmeshed:
+        box = Bnd_Box()
+        BRepBndLib.Add_s(face, box, False)
+        box.Enlarge(2.0 * merge_tol)
+        lo, hi = np.array(box.CornerMin().Coord()), np.array(box.CornerMax().Coord())
+        boxes.append((fi, face, lo, hi))
+    new_t, new_uv, new_f = [], [], []
+    seen: set[int] = set()
+    for start in list(succ):
+        if start in seen:
+            continue
+        loop = [start]
+        while succ.get(loop[-1], start) != start and len(loop) <= len(succ):
+            loop.append(succ[loop[-1]])
+        seen.update(loop)
+        if succ.get(loop[-1]) != start or len(loop) < 3:
+            continue
+        pts = xyz[loop]
+        owner = next((b for b in boxes if (pts >= b[2]).all() and (pts <= b[3]).all()), None)
+        if owner is None:
+            continue
+        fi, face, _, _ = owner
+        fan = _best_fan(pts)
+        if fan is None:
+            continue
+        surf = ShapeAnalysis_Surface(BRep_Tool.Surface_s(face))
+        uv = np.array([surf.ValueOfUV(gp_Pnt(*p), merge_tol).Coord() for p in pts.tolist()])
+        ids = np.asarray(loop)
+        # the hole's edges run a -> b; the filling triangles must hold b -> a
+        for i, j, k in fan:
+            new_t.append(ids[[i, k, j]])
+            new_uv.append(uv[[i, k, j]])
+            new_f.append(fi)
+    if not new_t:
+        return tris, tri_uv, tri_face
+    return (
+        np.vstack([tris, np.array(new_t, dtype=np.int64)]),
+        np.concatenate([tri_uv, np.array(new_uv)]),
+        np.concatenate([tri_face, np.array(new_f, dtype=np.int64)]),
+    )
+
+
+def _best_fan(pts: np.ndarray) -> list[tuple[int, int, int]] | None:
+    """Fan triangles (apex, i, i + 1) over a small closed polygon from the apex whose smallest
+    triangle is largest; None if every fan has a degenerate triangle."""
+    k = len(pts)
+    best, best_area = None, 0.0
+    for apex in range(k):
+        order = [(apex + d) % k for d in range(k)]
+        fan = [(order[0], order[i], order[i + 1]) for i in range(1, k - 1)]
+        area = min(float(np.linalg.norm(np.cross(pts[j] - pts[i], pts[m] - pts[i]))) for i, j, m in fan)
+        if area > best_area:
+            best, best_area = fan, area
+    return best if best_area > 1e-18 else None
 
 
 def _merge_nodes(xyz: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
