@@ -144,6 +144,9 @@ def build_topomesh(solid: TopoDS_Shape, *, deflection: float, angular: float, me
     keep = (tris[:, 0] != tris[:, 1]) & (tris[:, 1] != tris[:, 2]) & (tris[:, 2] != tris[:, 0])
     tris, tri_uv, tri_face = tris[keep], tri_uv[keep], tri_face[keep]
 
+    if unmeshed:  # first, so that a sliver keeps its shape where its nodes are far enough apart
+        tris, tri_uv, tri_face = _fill_tiny_faces(xyz, tris, tri_uv, tri_face, unmeshed, merge_tol)
+
     merged_open = 0
     if edge_defects(tris, len(xyz))[0]:
         # Open edges: copies of a node that lie farther apart than the merge tolerance but within
@@ -159,9 +162,6 @@ def build_topomesh(solid: TopoDS_Shape, *, deflection: float, angular: float, me
             new_id[used] = np.arange(len(used))
             merged_open = len(xyz) - len(used)
             xyz, tris, glob = xyz[used], new_id[tris], new_id[glob]
-
-    if unmeshed:
-        tris, tri_uv, tri_face = _fill_tiny_faces(xyz, tris, tri_uv, tri_face, unmeshed, merge_tol)
 
     edge_of: dict[tuple[int, int], int] = {}
     for brep_edge, ids in edge_local:

@@ -207,3 +207,4 @@ def test_a_face_occt_cannot_mesh_is_closed_and_reported():
     mesh = slice_step(path, SliceParams(layer_height=0.2))
     assert_watertight(mesh)
     assert any("could not mesh face 73" in w and "sliver" in w for w in mesh.warnings), mesh.warnings
+    assert any("node(s) on cracks were merged" in w for w in mesh.warnings), mesh.warnings
