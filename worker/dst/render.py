@@ -13,6 +13,7 @@ matplotlib.use("Agg")  # no display; must precede pyplot
 import matplotlib.pyplot as plt  # noqa: E402
 
 from worker.dst.report import MeshReport, Report  # noqa: E402
+from worker.dst.stl_io import write_atomic  # noqa: E402
 
 _FLOOR = 1e-7  # log axes: values below this (DST's float32 rounding) are drawn at the floor
 
@@ -46,7 +47,7 @@ def write_plot(report: Report, path: str | os.PathLike[str]) -> None:
     if fmt not in {"svg", "png"}:
         raise ValueError(f"plot format must be .svg or .png, got {path!r}")
     data = plot_bytes(report, fmt)
-    _write_atomic(path, data)
+    write_atomic(path, data)
 
 
 def plot_bytes(report: Report, fmt: str) -> bytes:
@@ -117,20 +118,8 @@ def _row(m: MeshReport) -> str:
 
 
 def write_html(report: Report, path: str | os.PathLike[str]) -> None:
-    _write_atomic(os.fspath(path), render_html(report).encode("utf-8"))
+    write_atomic(path, render_html(report).encode("utf-8"))
 
 
 def write_json(report: Report, path: str | os.PathLike[str]) -> None:
-    _write_atomic(os.fspath(path), report.model_dump_json(indent=1).encode("utf-8"))
-
-
-def _write_atomic(path: str, data: bytes) -> None:
-    tmp = f"{path}.part"
-    try:
-        with open(tmp, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    write_atomic(path, report.model_dump_json(indent=1).encode("utf-8"))

@@ -39,7 +39,7 @@ from worker.dst.deviation import (
     offset_cut,
     span_curvatures,
 )
-from worker.dst.errors import ResourceLimitExceeded, TessellationError
+from worker.dst.errors import DstError, ResourceLimitExceeded, TessellationError
 from worker.dst.forked import Task, TaskDied, TaskGroup
 from worker.dst.meshops import edge_defects, signed_volume
 from worker.dst.params import SliceParams
@@ -129,24 +129,30 @@ def _occt_side(part: LoadedPart, baselines: Sequence[str], parallel: bool) -> Oc
 
 
 def _occt_result(side: Task) -> OcctSide:
-    try:
-        return side.result()
-    except TaskDied as exc:
-        raise TessellationError(
-            f"OCCT failed while meshing the conventional baselines: {exc}; the report can be made "
-            "without them (baselines 'none')"
-        ) from exc
+    return _helper_result(
+        side,
+        TessellationError,
+        "OCCT failed while meshing the conventional baselines: {exc}; the report can be made "
+        "without them (baselines 'none')",
+    )
 
 
 def _measured(task: Task) -> _Measured:
+    # numpy work only: a helper that dies without a word was killed, in practice for memory
+    return _helper_result(
+        task,
+        ResourceLimitExceeded,
+        "a helper measuring the meshes died ({exc}), most likely out of memory: measure fewer "
+        "baselines, or use fewer helpers (--processes 1, DST_REPORT_PROCESSES=1)",
+    )
+
+
+def _helper_result(task: Task, error: type[DstError], message: str):
+    """The task's result; a helper that died becomes ``error`` with ``message`` (``{exc}``: how)."""
     try:
         return task.result()
     except TaskDied as exc:
-        # numpy work only: a helper that dies without a word was killed, in practice for memory
-        raise ResourceLimitExceeded(
-            f"a helper measuring the meshes died ({exc}), most likely out of memory: measure fewer "
-            "baselines, or use fewer helpers (--processes 1, DST_REPORT_PROCESSES=1)"
-        ) from exc
+        raise error(message.format(exc=exc)) from exc
 
 
 # --- the JSON contract -----------------------------------------------------------------------------

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import struct
+from collections.abc import Callable
 from typing import BinaryIO
 
 import numpy as np
@@ -30,14 +31,23 @@ def write_stl(
     The file is written to a temporary name beside ``path`` and renamed, so a reader never sees a
     partial file and a failure leaves nothing behind.
     """
+    if ascii:
+        return write_atomic(path, lambda fh: _write_ascii(fh, vertices32, triangles, name))
+    return write_atomic(path, lambda fh: _write_binary(fh, vertices32, triangles, name))
+
+
+def write_atomic(path: str | os.PathLike[str], write: Callable[[BinaryIO], object] | bytes) -> int:
+    """Write a file through a temporary name beside ``path``, renamed when complete: a reader never
+    sees a partial file, and a failure leaves nothing behind. ``write`` is the content or a function
+    that writes it to the open file. Returns the file's size."""
     path = os.fspath(path)
     tmp = f"{path}.part"
     try:
         with open(tmp, "wb") as fh:
-            if ascii:
-                _write_ascii(fh, vertices32, triangles, name)
+            if isinstance(write, bytes):
+                fh.write(write)
             else:
-                _write_binary(fh, vertices32, triangles, name)
+                write(fh)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -61,18 +71,7 @@ def write_3mf(
         process=False,
     )
     mesh.metadata["name"] = name
-    data = trimesh.exchange.threemf.export_3MF(mesh)
-    path = os.fspath(path)
-    tmp = f"{path}.part"
-    try:
-        with open(tmp, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return os.path.getsize(path)
+    return write_atomic(path, trimesh.exchange.threemf.export_3MF(mesh))
 
 
 def binary_stl_size(n_triangles: int) -> int:
