@@ -93,9 +93,15 @@ class DstClient:
             raise JobFailed(200, err["code"], err["message"])
         return job
 
-    def download_mesh(self, job_id: str, path: str | os.PathLike[str], *, ascii: bool = False) -> int:
-        """Stream the DST STL to ``path``; returns bytes written."""
-        return self._download(f"/v1/jobs/{job_id}/mesh", path, params={"format": "ascii" if ascii else "stl"})
+    def download_mesh(
+        self, job_id: str, path: str | os.PathLike[str], *, ascii: bool = False, format: str | None = None
+    ) -> int:
+        """Stream the DST mesh to ``path``; returns bytes written. ``format``: "stl" (binary),
+        "ascii" or "3mf"; by default 3MF for a path ending in .3mf, else binary STL (ASCII with
+        ``ascii``)."""
+        if format is None:
+            format = "3mf" if os.fspath(path).lower().endswith(".3mf") else "ascii" if ascii else "stl"
+        return self._download(f"/v1/jobs/{job_id}/mesh", path, params={"format": format})
 
     def report(self, job_id: str) -> dict[str, Any]:
         return _json(self.http.get(f"/v1/jobs/{job_id}/report"))

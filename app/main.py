@@ -571,7 +571,10 @@ def _stl_name(job: Job) -> str:
     operation_id="get_mesh",
     tags=["artifacts"],
     responses={
-        200: {"content": {"model/stl": {}}, "description": "Binary STL (ranges supported)."},
+        200: {
+            "content": {"model/stl": {}, "model/3mf": {}},
+            "description": "Binary STL (ranges supported), ASCII STL, or 3MF.",
+        },
         404: ERROR_RESPONSES[404],
         409: ERROR_RESPONSES[409],
     },
@@ -580,35 +583,44 @@ async def get_mesh(
     request: Request,
     job_id: JobId,
     format: Annotated[
-        str, Query(pattern="^(stl|ascii)$", description="stl (binary, default) or ascii.")
+        str,
+        Query(
+            pattern="^(stl|ascii|3mf)$",
+            description="stl (binary, default), ascii, or 3mf (the same float32 vertices, indexed).",
+        ),
     ] = "stl",
 ) -> Response:
     """The DST mesh, streamed from storage with Content-Length, ETag and range requests."""
     job = await run_in_threadpool(_get_job, request, job_id)
-    if format == "ascii" and job.status == "succeeded":
-        path = await run_in_threadpool(_ascii_copy, request, job)
-        return FileResponse(
-            path, media_type="model/stl", filename=_stl_name(job).replace(".stl", "_ascii.stl")
-        )
+    if format in {"ascii", "3mf"} and job.status == "succeeded":
+        path = await run_in_threadpool(_converted_copy, request, job, format)
+        stem = Path(_stl_name(job)).stem
+        if format == "3mf":
+            return FileResponse(path, media_type="model/3mf", filename=f"{stem}.3mf")
+        return FileResponse(path, media_type="model/stl", filename=f"{stem}_ascii.stl")
     return await run_in_threadpool(_artifact_response, request, job_id, "mesh", _stl_name(job))
 
 
-def _ascii_copy(request: Request, job: Job) -> Path:
-    """The ASCII STL, made once from the binary one and kept beside it."""
+def _converted_copy(request: Request, job: Job, format: str) -> Path:
+    """The ASCII STL or the 3MF, made once from the binary STL and kept beside it."""
     import numpy as np
 
-    from worker.dst.stl_io import STL_RECORD, write_stl
+    from worker.dst.stl_io import STL_RECORD, write_3mf, write_stl
 
     art = _artifacts(request)
-    out = art.path(job.id, "mesh_ascii.stl")
+    out = art.path(job.id, "mesh.3mf" if format == "3mf" else "mesh_ascii.stl")
     if not out.is_file():
         out.parent.mkdir(parents=True, exist_ok=True)
         with art.open(job.id, "mesh.stl") as fh:
             raw = np.frombuffer(fh.read(), dtype=np.uint8)[84:]
         rec = raw.view(STL_RECORD)
         v = rec["v"].reshape(-1, 3)
-        uniq, inv = np.unique(v, axis=0, return_inverse=True)
-        write_stl(out, uniq, inv.reshape(-1, 3), ascii=True, name=Path(job.file_name).stem or "dst")
+        uniq, inv = np.unique(v, axis=0, return_inverse=True)  # an STL reader's merge: equal float32
+        name = Path(job.file_name).stem or "dst"
+        if format == "3mf":
+            write_3mf(out, uniq, inv.reshape(-1, 3), name=name)
+        else:
+            write_stl(out, uniq, inv.reshape(-1, 3), ascii=True, name=name)
     return out
 
 

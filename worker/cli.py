@@ -280,7 +280,7 @@ def _add_remote_parser(sub: argparse._SubParsersAction) -> None:
         "(and, with --report/--html, its deviation report).",
     )
     p.add_argument("input", help="STEP file")
-    p.add_argument("-o", "--output", required=True, help="STL file to write")
+    p.add_argument("-o", "--output", required=True, help="STL file to write (.3mf: a 3MF file)")
     p.add_argument(
         "--server",
         default=os.environ.get("DST_SERVER", "http://127.0.0.1:8000"),

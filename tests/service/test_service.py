@@ -3,6 +3,7 @@ kill -9 and restart, the Redis scale-out, and the API answering while the cores 
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import signal
@@ -11,7 +12,9 @@ import sys
 import time
 
 import httpx
+import numpy as np
 import pytest
+import trimesh
 
 from app.client import DstClient, JobFailed
 from tests.conftest import build_part, write_step
@@ -82,6 +85,14 @@ def test_upload_events_mesh_report_delete(service_factory, parts, tmp_path):
         assert httpx.get(svc.url + job["links"]["plot_png"]).content[:8] == b"\x89PNG\r\n\x1a\n"
         ascii_stl = httpx.get(svc.url + job["links"]["mesh"], params={"format": "ascii"}).text
         assert ascii_stl.startswith("solid") and ascii_stl.count("facet normal") == job["result"]["triangles"]
+        r3 = httpx.get(svc.url + job["links"]["mesh"], params={"format": "3mf"})
+        assert r3.status_code == 200 and r3.headers["content-type"] == "model/3mf"
+        m3 = trimesh.load(io.BytesIO(r3.content), file_type="3mf", force="mesh", process=False)
+        stl = trimesh.load(io.BytesIO(mesh.read_bytes()), file_type="stl")  # merges equal vertices
+        assert m3.is_watertight and len(m3.faces) == job["result"]["triangles"]
+        assert len(m3.vertices) == len(stl.vertices)  # indexed: each float32 point once
+        same = np.unique(np.asarray(m3.vertices, np.float32), axis=0)
+        assert np.array_equal(same, np.unique(np.asarray(stl.vertices, np.float32), axis=0))
 
         again = c.submit(parts["hemisphere"], layer_height=0.2, target_slicer="prusa", baselines="occt_fast")
         assert again["reused"] and again["id"] == job["id"]
@@ -216,7 +227,7 @@ def test_redis_scale_out_two_workers_share_the_work(service_factory, parts, redi
 
 def test_remote_cli_round_trip(service_factory, parts, tmp_path):
     svc = service_factory().start()
-    out = tmp_path / "remote.stl"
+    out = tmp_path / "remote.3mf"  # the client asks for 3MF by the extension
     r = subprocess.run(
         [
             sys.executable,
@@ -238,7 +249,8 @@ def test_remote_cli_round_trip(service_factory, parts, tmp_path):
         timeout=300,
     )
     assert r.returncode == 0, r.stderr
-    assert out.stat().st_size > 84 and json.loads((tmp_path / "r.json").read_text())["version"] == "1.0"
+    assert trimesh.load(out, file_type="3mf", force="mesh").is_watertight
+    assert json.loads((tmp_path / "r.json").read_text())["version"] == "1.0"
 
 
 def test_artifacts_on_s3(service_factory, parts, s3_bucket, tmp_path):
