@@ -42,7 +42,8 @@ f.onsubmit = async (e) => {
     bar.value = job.progress; st.textContent = job.status + ': ' + job.stage;
     if (job.status === 'succeeded') {
       const l = job.links;
-      links.innerHTML = '<a href="' + l.mesh + '">mesh (STL)</a> · <a href="' + l.report_html +
+      links.innerHTML = '<a href="' + l.mesh + '">mesh (STL)</a> · <a href="' + l.mesh +
+        '?format=3mf">mesh (3MF)</a> · <a href="' + l.report_html +
         '">report</a> · <a href="' + l.report + '">report JSON</a> · <a href="' + l.plot_svg + '">plot</a>';
     } else if (job.error) { st.className = 'err'; st.textContent = job.error.code + ': ' + job.error.message; }
   };
