@@ -25,6 +25,13 @@ def edge_defects(tris: np.ndarray, n_vertices: int) -> tuple[int, int]:
     return int(np.count_nonzero(key[idx] != rkey)), nonmanifold
 
 
+def open_edges(tris: np.ndarray, n_vertices: int) -> np.ndarray:
+    """The directed edges (k, 2) whose reverse is missing: the borders of a mesh's holes."""
+    e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
+    key = e[:, 0] * n_vertices + e[:, 1]
+    return e[~np.isin(key, e[:, 1] * n_vertices + e[:, 0])]
+
+
 def signed_volume(xyz: np.ndarray, tris: np.ndarray) -> float:
     """Signed volume (mm^3) enclosed by a closed triangle mesh (divergence theorem); > 0 if outward."""
     a, b, c = xyz[tris[:, 0]], xyz[tris[:, 1]], xyz[tris[:, 2]]

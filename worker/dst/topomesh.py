@@ -39,7 +39,7 @@ from scipy.spatial import cKDTree
 
 from worker.dst.errors import TessellationError
 from worker.dst.exact import EdgeEval, FaceEval
-from worker.dst.meshops import edge_defects, signed_volume
+from worker.dst.meshops import edge_defects, open_edges, signed_volume
 
 # BRepMesh leaves a face without triangles: closed from its neighbours' nodes if its box diagonal
 # is within this many deflections (any triangle across it is then within the mesh's tolerance).
@@ -86,7 +86,7 @@ def build_topomesh(solid: TopoDS_Shape, *, deflection: float, angular: float, me
     xyz_parts, uv_parts, tri_parts, face_parts = [], [], [], []
     edge_local: list[tuple[int, np.ndarray]] = []  # (brep edge index, global-offset node ids)
     offset = 0
-    unmeshed: list[tuple[int, TopoDS_Face]] = []
+    unmeshed: list[tuple[int, TopoDS_Face, np.ndarray, np.ndarray]] = []  # index, face, box
     exp = TopExp_Explorer(solid, TopAbs_FACE)
     while exp.More():
         face = TopoDS.Face(exp.Current())
@@ -94,13 +94,14 @@ def build_topomesh(solid: TopoDS_Shape, *, deflection: float, angular: float, me
         loc = TopLoc_Location()
         tri = BRep_Tool.Triangulation_s(face, loc)
         if tri is None or tri.NbTriangles() == 0:
-            if _face_size(face) > TINY_FACE_DEFLECTIONS * deflection:
+            lo, hi = _face_box(face)
+            if np.linalg.norm(hi - lo) > TINY_FACE_DEFLECTIONS * deflection:
                 raise TessellationError(
                     f"face {len(faces) + 1} could not be meshed (degenerate or invalid face)"
                 )
             # A sliver smaller than the mesh's own tolerance (BRepMesh skips those): closed below
             # from the nodes its neighbours put on its edges.
-            unmeshed.append((len(faces), face))
+            unmeshed.append((len(faces), face, lo, hi))
             faces.append(FaceEval(BRepAdaptor_Surface(face)))
             continue
         trsf = loc.Transformation()
@@ -138,24 +139,21 @@ def build_topomesh(solid: TopoDS_Shape, *, deflection: float, angular: float, me
     tri_face = np.concatenate(face_parts)
 
     glob, xyz = _merge_nodes(local_xyz, merge_tol)
-    tris = glob[local_tris]
-    tri_uv = local_uv[local_tris]
-    # Pole and seam copies merged into one node leave triangles with a repeated corner: drop them.
-    keep = (tris[:, 0] != tris[:, 1]) & (tris[:, 1] != tris[:, 2]) & (tris[:, 2] != tris[:, 0])
-    tris, tri_uv, tri_face = tris[keep], tri_uv[keep], tri_face[keep]
+    # Pole and seam copies merged into one node leave triangles with a repeated corner: dropped.
+    tris, tri_uv, tri_face = _drop_degenerate(glob[local_tris], local_uv[local_tris], tri_face)
 
     if unmeshed:  # first, so that a sliver keeps its shape where its nodes are far enough apart
         tris, tri_uv, tri_face = _fill_tiny_faces(xyz, tris, tri_uv, tri_face, unmeshed, merge_tol)
 
     merged_open = 0
-    if edge_defects(tris, len(xyz))[0]:
+    holes = open_edges(tris, len(xyz))
+    if len(holes):
         # Open edges: copies of a node that lie farther apart than the merge tolerance but within
         # the B-rep's own vertex tolerance (a sloppy corner in the file). Merge those, there only.
-        remap = _merge_open_nodes(xyz, tris, min(_max_vertex_tolerance(solid), deflection))
+        remap = _merge_open_nodes(xyz, holes, min(_max_vertex_tolerance(solid), deflection))
         if remap is not None:
-            glob, tris = remap[glob], remap[tris]
-            keep = (tris[:, 0] != tris[:, 1]) & (tris[:, 1] != tris[:, 2]) & (tris[:, 2] != tris[:, 0])
-            tris, tri_uv, tri_face = tris[keep], tri_uv[keep], tri_face[keep]
+            glob = remap[glob]
+            tris, tri_uv, tri_face = _drop_degenerate(remap[tris], tri_uv, tri_face)
             # renumber the nodes still in use (every node of a topology mesh is on a triangle)
             used = np.unique(tris)
             new_id = np.full(len(xyz), -1, dtype=np.int64)
@@ -183,7 +181,7 @@ def build_topomesh(solid: TopoDS_Shape, *, deflection: float, angular: float, me
         edges=edges,
         edge_of=edge_of,
         deflection=deflection,
-        filled_faces=tuple((fi, _face_area(face)) for fi, face in unmeshed),
+        filled_faces=tuple((fi, _face_area(face)) for fi, face, _, _ in unmeshed),
         merged_open_nodes=merged_open,
     )
 
@@ -197,24 +195,24 @@ def _max_vertex_tolerance(solid: TopoDS_Shape) -> float:
     return tol
 
 
-def _merge_open_nodes(xyz: np.ndarray, tris: np.ndarray, tol: float) -> np.ndarray | None:
-    """A node map merging the nodes of open edges that lie within ``tol`` of each other (into the
-    lowest id of each group), or None if there are none."""
-    e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
-    n = len(xyz)
-    key = e[:, 0] * n + e[:, 1]
-    nodes = np.unique(e[~np.isin(key, e[:, 1] * n + e[:, 0])])
-    pairs = cKDTree(xyz[nodes]).query_pairs(tol, output_type="ndarray")
-    if not len(pairs):
+def _merge_open_nodes(xyz: np.ndarray, holes: np.ndarray, tol: float) -> np.ndarray | None:
+    """A node map merging the nodes of the open edges ``holes`` that lie within ``tol`` of each other
+    (into the lowest id of each group), or None if there are none."""
+    nodes = np.unique(holes)
+    labels, _ = _merge_nodes(xyz[nodes], tol)
+    if labels.max() + 1 == len(nodes):
         return None
-    k = len(nodes)
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(k, k))
-    _, labels = connected_components(graph, directed=False)
-    first = np.full(labels.max() + 1, n, dtype=np.int64)
+    first = np.full(labels.max() + 1, len(xyz), dtype=np.int64)
     np.minimum.at(first, labels, nodes)
-    remap = np.arange(n)
+    remap = np.arange(len(xyz))
     remap[nodes] = first[labels]
     return remap
+
+
+def _drop_degenerate(tris: np.ndarray, tri_uv: np.ndarray, tri_face: np.ndarray):
+    """The triangles (with their (u, v) and faces) that do not repeat a corner."""
+    keep = (tris[:, 0] != tris[:, 1]) & (tris[:, 1] != tris[:, 2]) & (tris[:, 2] != tris[:, 0])
+    return tris[keep], tri_uv[keep], tri_face[keep]
 
 
 def _face_area(face: TopoDS_Face) -> float:
@@ -223,11 +221,11 @@ def _face_area(face: TopoDS_Face) -> float:
     return float(props.Mass())
 
 
-def _face_size(face: TopoDS_Face) -> float:
-    """Diagonal of the face's bounding box, mm."""
+def _face_box(face: TopoDS_Face) -> tuple[np.ndarray, np.ndarray]:
+    """Corners of the face's bounding box, mm."""
     box = Bnd_Box()
     BRepBndLib.Add_s(face, box, False)
-    return 0.0 if box.IsVoid() else float(box.CornerMin().Distance(box.CornerMax()))
+    return np.array(box.CornerMin().Coord()), np.array(box.CornerMax().Coord())
 
 
 def _fill_tiny_faces(xyz, tris, tri_uv, tri_face, unmeshed, merge_tol):
@@ -235,23 +233,13 @@ def _fill_tiny_faces(xyz, tris, tri_uv, tri_face, unmeshed, merge_tol):
     used once) that fits in one such face's box is fanned from the corner that gives the
     best-shaped triangles, oriented against the hole's edges, with (u, v) projected on the face.
     Holes that fit no tiny face are left for the closedness check to refuse."""
-    e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
-    n = len(xyz)
-    key = e[:, 0] * n + e[:, 1]
-    rev = e[:, 1] * n + e[:, 0]
-    open_e = e[~np.isin(key, rev)]
     succ: dict[int, int] = {}
-    for a, b in open_e.tolist():
+    for a, b in open_edges(tris, len(xyz)).tolist():
         if a in succ:  # a node on two holes (or a non-manifold spot): not a simple hole
             return tris, tri_uv, tri_face
         succ[a] = b
-    boxes = []
-    for fi, face in unmeshed:
-        box = Bnd_Box()
-        BRepBndLib.Add_s(face, box, False)
-        box.Enlarge(2.0 * merge_tol)
-        lo, hi = np.array(box.CornerMin().Coord()), np.array(box.CornerMax().Coord())
-        boxes.append((fi, face, lo, hi))
+    pad = 2.0 * merge_tol
+    boxes = [(fi, face, lo - pad, hi + pad) for fi, face, lo, hi in unmeshed]
     new_t, new_uv, new_f = [], [], []
     seen: set[int] = set()
     for start in list(succ):
