@@ -289,10 +289,10 @@ class SegmentSet:
         self.nxt, self.chord = nxt, chord  # closed loops: next span; the curves' sampling tolerance
         self.curv = np.zeros((len(seg), 2)) if curv is None else np.asarray(curv, dtype=np.float64)
         self.curved = bool(np.any(self.curv != 0.0))
-        self.len2 = ((seg[:, 1] - seg[:, 0]) ** 2).sum(axis=1)
+        ab = seg[:, 1] - seg[:, 0]
+        self.len2 = (ab**2).sum(axis=1)
         # one row per segment, gathered at once per candidate: a, b - a, 1 / |b - a|^2 and, for
         # curves, the end curvatures times |b - a|
-        ab = seg[:, 1] - seg[:, 0]
         inv = np.where(self.len2 > 0, 1.0 / np.where(self.len2 > 0, self.len2, 1.0), 0.0)
         cols = [seg[:, 0], ab, inv[:, None]]
         if self.curved:

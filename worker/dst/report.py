@@ -358,10 +358,11 @@ def _build_report(
     # helpers finish together, largest first; one k-d tree thread each when they run side by side.
     workers = 1 if tasks.forked and tasks.limit > 1 else -1
     ref_per_plane = np.bincount(ref_plane, minlength=n_planes)
-    measuring: dict[int, list[tuple[int, int, Task]]] = {}
+    measuring: dict[int, list[tuple[int, Task]]] = {}  # per mesh: (first plane, task)
 
     def start(ms: list[MeshInput]) -> None:
-        costs = {id(m): _plane_costs(m, heights, ref_per_plane) for m in ms}
+        placed = {id(m): _on_bed(m) for m in ms}  # once per mesh; the helpers share it
+        costs = {id(m): _plane_costs(*placed[id(m)], heights, ref_per_plane) for m in ms}
         total = sum(c.sum() for c in costs.values())
         chunk = max(total / (3 * tasks.limit), MIN_MEASURE_CHUNK) if tasks.forked else np.inf
         jobs = []
@@ -369,10 +370,11 @@ def _build_report(
             for j0, j1 in _plane_ranges(costs[id(m)], chunk):
                 jobs.append((float(costs[id(m)][j0:j1].sum()), m, j0, j1))
         for _, m, j0, j1 in sorted(jobs, key=lambda job: job[0], reverse=True):
+            v, tr = placed[id(m)]
             task = tasks.submit(
-                _measure_planes, m, heights, j0, j1, ref_set, ref_perimeter, n_planes, workers
+                _measure_planes, v, tr, heights, j0, j1, ref_set, ref_perimeter, n_planes, workers
             )
-            measuring.setdefault(id(m), []).append((j0, j1, task))
+            measuring.setdefault(id(m), []).append((j0, task))
 
     if baselines and not side.ready():
         start(todo)  # while OCCT finishes the baselines
@@ -387,7 +389,7 @@ def _build_report(
     results = [
         _mesh_report(
             m,
-            [_measured(t) for _, _, t in sorted(measuring[id(m)], key=lambda r: r[0])],
+            [_measured(t) for _, t in sorted(measuring[id(m)], key=lambda r: r[0])],
             planes_z,
             loops_exact,
         )
@@ -467,16 +469,25 @@ def _build_report(
 
 @dataclass
 class _Measured:
-    """One mesh measured at planes j0 .. j1 - 1 (per-plane arrays of that length); the mesh-wide
+    """One mesh measured at a range of planes (per-plane arrays of that length); the mesh-wide
     numbers come with the range that starts at plane 0."""
 
-    j0: int
     metrics: LayerMetrics
     mesh_wide: tuple[int, int, float] | None  # open edges, non-manifold edges, volume
 
 
+def _on_bed(m: MeshInput) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh as a slicer places it: float64 vertices with the lowest dropped to z = 0 (x, y
+    unchanged), and (n, 3) triangles."""
+    v = np.array(m.vertices, dtype=np.float64)
+    if len(v):
+        v[:, 2] -= v[:, 2].min()
+    return v, np.asarray(m.triangles, dtype=np.int64).reshape(-1, 3)
+
+
 def _measure_planes(
-    m: MeshInput,
+    v: np.ndarray,
+    tr: np.ndarray,
     heights: np.ndarray,
     j0: int,
     j1: int,
@@ -485,11 +496,8 @@ def _measure_planes(
     n_planes: int,
     workers: int,
 ) -> _Measured:
-    """Cut one mesh at planes j0 .. j1 - 1 and measure the cuts (pure numpy: runs in a forked helper)."""
-    v = np.array(m.vertices, dtype=np.float64)
-    tr = np.asarray(m.triangles, dtype=np.int64).reshape(-1, 3)
-    if len(v):
-        v[:, 2] -= v[:, 2].min()  # the slicer drops the mesh onto the bed
+    """Cut a mesh placed by ``_on_bed`` at planes j0 .. j1 - 1 and measure the cuts (pure numpy:
+    runs in a forked helper)."""
     cut = offset_cut(cut_mesh(v, tr, heights[j0:j1]), j0, n_planes)
     met = compare(cut, ref_set, ref_perimeter, n_planes, workers=workers)
     part = LayerMetrics(**{k: getattr(met, k)[j0:j1] for k in LayerMetrics.__dataclass_fields__})
@@ -497,7 +505,7 @@ def _measure_planes(
     if j0 == 0:
         open_edges, nonmanifold = edge_defects(tr, len(v)) if len(tr) else (0, 0)
         mesh_wide = (open_edges, nonmanifold, signed_volume(v, tr) if len(tr) else 0.0)
-    return _Measured(j0, part, mesh_wide)
+    return _Measured(part, mesh_wide)
 
 
 def _mesh_report(
@@ -556,14 +564,13 @@ def _mesh_report(
     )
 
 
-def _plane_costs(m: MeshInput, heights: np.ndarray, ref_per_plane: np.ndarray) -> np.ndarray:
-    """Work of measuring the mesh at each plane: its cut's segments (two searches each: vertex and
-    midpoint) and the reference's spans (two points each)."""
+def _plane_costs(v: np.ndarray, tr: np.ndarray, heights: np.ndarray, ref_per_plane: np.ndarray) -> np.ndarray:
+    """Work of measuring a mesh placed by ``_on_bed`` at each plane: its cut's segments (two
+    searches each: vertex and midpoint) and the reference's spans (two points each)."""
     n = len(heights)
     crossings = np.zeros(n + 1)
-    if len(m.triangles):
-        z = np.asarray(m.vertices)[:, 2]
-        tz = (z - z.min())[np.asarray(m.triangles).reshape(-1, 3)]
+    if len(tr):
+        tz = v[:, 2][tr]
         first = np.searchsorted(heights, tz.min(axis=1))
         stop = np.searchsorted(heights, tz.max(axis=1))
         np.add.at(crossings, first, 1.0)
