@@ -52,8 +52,7 @@ def cut_mesh(vertices: np.ndarray, triangles: np.ndarray, heights: np.ndarray) -
     if len(t) == 0 or n_planes == 0:
         return _empty_cut(n_planes)
     tz = v[:, 2][t]
-    first = np.searchsorted(h, tz.min(axis=1), side="left")  # first plane >= lowest corner
-    stop = np.searchsorted(h, tz.max(axis=1), side="left")  # first plane >= highest corner
+    first, stop = crossed_planes(tz, h)
     count = np.maximum(stop - first, 0)
     tri = np.repeat(np.arange(len(t)), count)
     if len(tri) == 0:
@@ -106,6 +105,16 @@ def cut_mesh(vertices: np.ndarray, triangles: np.ndarray, heights: np.ndarray) -
         open_chains=open_chains.astype(np.int64),
         vertices=node_xy,
         vertex_plane=node_plane,
+    )
+
+
+def crossed_planes(tri_z: np.ndarray, heights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per triangle (corner heights (m, 3)), the planes ``first .. stop - 1`` that cut it, a corner
+    on a plane counting as below it: the first plane at or above the lowest corner, and the first
+    at or above the highest."""
+    return (
+        np.searchsorted(heights, tri_z.min(axis=1), side="left"),
+        np.searchsorted(heights, tri_z.max(axis=1), side="left"),
     )
 
 

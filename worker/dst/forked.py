@@ -102,12 +102,10 @@ class Task:
         raise value
 
     def _collect(self) -> None:
-        chunks = []
         with os.fdopen(self._fd, "rb") as f:  # the child writes everything, then exits
-            chunks.append(f.read())
+            data = f.read()
         self._fd = None
         _, status = os.waitpid(self.pid, 0)
-        data = b"".join(chunks)
         if not data:
             how = (
                 f"killed by signal {os.WTERMSIG(status)}"

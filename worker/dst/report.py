@@ -32,6 +32,7 @@ from worker.dst.deviation import (
     LayerMetrics,
     SegmentSet,
     compare,
+    crossed_planes,
     curve_lengths,
     cut_mesh,
     loop_successors,
@@ -570,9 +571,7 @@ def _plane_costs(v: np.ndarray, tr: np.ndarray, heights: np.ndarray, ref_per_pla
     n = len(heights)
     crossings = np.zeros(n + 1)
     if len(tr):
-        tz = v[:, 2][tr]
-        first = np.searchsorted(heights, tz.min(axis=1))
-        stop = np.searchsorted(heights, tz.max(axis=1))
+        first, stop = crossed_planes(v[:, 2][tr], heights)
         np.add.at(crossings, first, 1.0)
         np.add.at(crossings, stop, -1.0)
     return 2.0 * np.cumsum(crossings)[:n] + 2.0 * ref_per_plane
