@@ -219,53 +219,50 @@ class RingSampler:
         try:
             x, y, _, _, _ = mesh.faces[face].root_on_uv_segment(ua, va, ub, vb, zc)
             near = topo.cross_xyz[c]
-            if math.hypot(x - near[0], y - near[1]) > SUSPECT_DEFLECTIONS * mesh.deflection:
+            d_root = math.hypot(x - near[0], y - near[1])
+            if d_root > SUSPECT_DEFLECTIONS * mesh.deflection:
                 # Along an edge that runs nearly level over the surface (a long triangle across a
                 # ridge or a valley just off the plane), the surface's root can lie far from the
                 # edge's crossing, out of order with its neighbours along the section (a ring that
-                # doubles back). The point of the section nearest the crossing keeps the order.
-                x, y = self._nearest_on_section(t, a, b, ua, va, ub, vb, zc, (x, y))
+                # doubles back). The point of the section nearest the crossing keeps the order,
+                # where Newton finds it inside the face.
+                p, uv = self._newton_from_crossing(t, a, b, (ua, va), (ub, vb), zc)
+                if (
+                    p is not None
+                    and math.hypot(p[0] - near[0], p[1] - near[1]) < d_root
+                    and mesh.faces[face].contains(float(uv[0]), float(uv[1]), tol=TRIM_TOL_MM)
+                ):
+                    x, y = float(p[0]), float(p[1])
+                    self.stats.reordered_crossings += 1
         except ExactFailure:
             # The surface at a node's (u, v) can differ from the node (an edge point) by the file's
             # tolerance, so a plane that close to a node is not bracketed: Newton from the seed.
             self.stats.fallbacks += 1
-            za, zb = mesh.xyz[a, 2], mesh.xyz[b, 2]
-            frac = min(1.0, max(0.0, (zc - za) / (zb - za))) if zb != za else 0.5
-            seed = np.array([[ua + frac * (ub - ua), va + frac * (vb - va)]])
-            pts, ok, _ = self._newton(
-                np.array([face]), seed[:, 0], seed[:, 1], zc, np.array([2.0 * self.tri_uv_scale[t]])
-            )
-            if not ok[0]:
+            p, _ = self._newton_from_crossing(t, a, b, (ua, va), (ub, vb), zc)
+            if p is None:
                 raise TessellationError(
                     f"no exact point of face {face + 1} at z={zc:.4f} mm near a topology edge"
                 ) from None
-            x, y, _ = pts[0]
+            x, y, _ = p
         return x, y, zc
 
-    def _nearest_on_section(
-        self, t: int, a: int, b: int, ua, va, ub, vb, zc: float, root: tuple[float, float]
-    ) -> tuple[float, float]:
-        """Newton (the smallest 3D move onto ``z = zc``) from the topology crossing of edge a-b in
-        triangle ``t``; ``root`` (the level point along the edge) if that fails or lands farther."""
+    def _newton_from_crossing(
+        self, t: int, a: int, b: int, uva, uvb, zc: float
+    ) -> tuple[np.ndarray | None, np.ndarray]:
+        """Newton (the smallest 3D move onto ``z = zc``) from where edge a-b of triangle ``t``
+        crosses the plane, interpolated in (u, v): the point and its (u, v), or None if it fails."""
         mesh = self.mesh
         za, zb = mesh.xyz[a, 2], mesh.xyz[b, 2]
         frac = min(1.0, max(0.0, (zc - za) / (zb - za))) if zb != za else 0.5
-        face = int(mesh.tri_face[t])
+        seed = np.asarray(uva, dtype=np.float64) + frac * np.subtract(uvb, uva)
         pts, ok, uv = self._newton(
-            np.array([face]),
-            np.array([ua + frac * (ub - ua)]),
-            np.array([va + frac * (vb - va)]),
+            np.array([int(mesh.tri_face[t])]),
+            seed[:1],
+            seed[1:],
             zc,
             np.array([2.0 * self.tri_uv_scale[t]]),
         )
-        seed = mesh.xyz[a] + frac * (mesh.xyz[b] - mesh.xyz[a])
-        if not ok[0] or not mesh.faces[face].contains(float(uv[0, 0]), float(uv[0, 1]), tol=TRIM_TOL_MM):
-            return root
-        x, y = float(pts[0, 0]), float(pts[0, 1])
-        if math.hypot(x - seed[0], y - seed[1]) >= math.hypot(root[0] - seed[0], root[1] - seed[1]):
-            return root
-        self.stats.reordered_crossings += 1
-        return x, y
+        return (pts[0] if ok[0] else None), uv[0]
 
     def _root_on_brep_edge(self, ei: int, a: int, b: int, zc: float) -> tuple[float, float, float]:
         ev = self.mesh.edges[ei]
