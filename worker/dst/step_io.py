@@ -11,26 +11,43 @@ import os
 from dataclasses import dataclass, field
 from functools import cached_property
 
-from OCP.BRep import BRep_Builder
+import numpy as np
+from OCP.BRep import BRep_Builder, BRep_Tool
+from OCP.BRepAdaptor import BRepAdaptor_Curve
 from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeSolid, BRepBuilderAPI_Sewing
 from OCP.BRepCheck import BRepCheck_Analyzer
 from OCP.BRepGProp import BRepGProp
+from OCP.BRepTools import BRepTools_ReShape
 from OCP.collections import (
     IndexedDataMap_TopoDS_Shape_List_TopoDS_Shape_TopTools_ShapeMapHasher as ShapeAncestorMap,
 )
 from OCP.collections import Sequence_TCollection_AsciiString
+from OCP.gp import gp_Pnt
 from OCP.GProp import GProp_GProps
 from OCP.IFSelect import IFSelect_ReturnStatus
 from OCP.ShapeFix import ShapeFix_Solid
 from OCP.STEPControl import STEPControl_Reader
-from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE, TopAbs_SHELL, TopAbs_SOLID
+from OCP.TopAbs import (
+    TopAbs_EDGE,
+    TopAbs_FACE,
+    TopAbs_FORWARD,
+    TopAbs_REVERSED,
+    TopAbs_SHELL,
+    TopAbs_SOLID,
+    TopAbs_VERTEX,
+)
 from OCP.TopExp import TopExp, TopExp_Explorer
-from OCP.TopoDS import TopoDS, TopoDS_Compound, TopoDS_Shape, TopoDS_Solid
+from OCP.TopoDS import TopoDS, TopoDS_Compound, TopoDS_Edge, TopoDS_Shape, TopoDS_Solid, TopoDS_Vertex
+from scipy.cluster.hierarchy import fcluster, linkage
+from scipy.spatial.distance import pdist
 
 from worker.dst.errors import EmptyGeometryError, NotASolidError, StepReadError
 from worker.dst.sniff import SNIFF_BYTES, sniff_step
 
 SEWING_TOL_MM = 1e-3  # gaps up to 1 um between open shells' edges are closed by sewing
+# Corners farther apart than this that one vertex joins (a file's coarse tolerance) are split apart
+LOOSE_VERTEX_GAP_MM = 0.05
+VERTEX_MIN_TOL_MM = 1e-7  # OCCT's Precision::Confusion()
 
 
 @dataclass
@@ -113,6 +130,18 @@ def read_step(path: str | os.PathLike[str]) -> LoadedPart:
         warnings.append(f"open shells were sewn into {len(solids)} closed solid(s)")
     elif loose_faces:
         warnings.append(f"{loose_faces} face(s) outside any solid were ignored (surfaces, open shells)")
+
+    split, widest = 0, 0.0
+    for k, solid in enumerate(solids):
+        healed = split_loose_vertices(solid)
+        if healed is not None:
+            solids[k], n, gap = healed
+            split, widest = split + n, max(widest, gap)
+    if split:
+        warnings.append(
+            f"{split} vertex(es) of the file joined corners up to {widest:.3g} mm apart (a coarse tolerance "
+            "in the file); each was split into its separate corners"
+        )
     return LoadedPart(solids=solids, source_units=units, warnings=warnings, sewn=sewn)
 
 
@@ -127,6 +156,99 @@ def solid_volume(solid: TopoDS_Shape) -> float:
     props = GProp_GProps()
     BRepGProp.VolumeProperties_s(solid, props, VOLUME_REL_EPS, True)
     return props.Mass()
+
+
+def split_loose_vertices(solid: TopoDS_Solid) -> tuple[TopoDS_Solid, int, float] | None:
+    """Give back their own vertices to corners that one over-tolerant vertex joins.
+
+    A file written with a coarse tolerance (say 1 mm) can make distinct corners of a narrow face one
+    vertex, whose tolerance then covers them all: a 1 mm wide strip whose four corners are two
+    vertices. Every mesher then puts one node for all those corners, and the mesh folds there.
+    Here, the edge ends at each vertex whose tolerance exceeds ``LOOSE_VERTEX_GAP_MM`` are grouped
+    by position (single linkage at that gap); a vertex whose ends form several groups is replaced
+    by one vertex per group (at the group's centre, its tolerance the group's radius), on copies of
+    its edges that keep their curves and pcurves. The result is kept only when OCCT finds it a
+    valid solid (a split that disconnects a wire is not); otherwise None, as when nothing is split.
+
+    Returns (solid, vertices split, widest distance between the corners they joined, mm) or None.
+    """
+    vertex_edges = ShapeAncestorMap()
+    TopExp.MapShapesAndAncestors_s(solid, TopAbs_VERTEX, TopAbs_EDGE, vertex_edges)
+    builder = BRep_Builder()
+    new_ends: list[tuple[TopoDS_Edge, dict[int, TopoDS_Vertex]]] = []  # (edge, end 0/1 -> vertex)
+
+    def ends_of(edge: TopoDS_Edge) -> dict[int, TopoDS_Vertex]:
+        for known, ends in new_ends:
+            if known.IsSame(edge):
+                return ends
+        new_ends.append((edge, {}))
+        return new_ends[-1][1]
+
+    n_split, widest = 0, 0.0
+    for i in range(1, vertex_edges.Extent() + 1):
+        vertex = TopoDS.Vertex(vertex_edges.FindKey(i))
+        if BRep_Tool.Tolerance_s(vertex) <= LOOSE_VERTEX_GAP_MM:
+            continue
+        ends: list[tuple[TopoDS_Edge, int]] = []
+        points: list[tuple[float, float, float]] = []
+        for shape in vertex_edges.FindFromIndex(i):
+            edge = TopoDS.Edge(shape.Oriented(TopAbs_FORWARD))
+            if any(e.IsSame(edge) for e, _ in ends):
+                continue  # a seam appears twice
+            if BRep_Tool.Degenerated_s(edge):
+                break  # a pole: its vertex has no corners to tell apart
+            curve = BRepAdaptor_Curve(edge)
+            for end, (v, t) in enumerate(
+                (
+                    (TopExp.FirstVertex_s(edge), curve.FirstParameter()),
+                    (TopExp.LastVertex_s(edge), curve.LastParameter()),
+                )
+            ):
+                if v.IsSame(vertex):
+                    ends.append((edge, end))
+                    points.append(curve.Value(t).Coord())
+        else:
+            if len(points) < 2:
+                continue
+            pts = np.array(points)
+            labels = fcluster(linkage(pts, "single"), LOOSE_VERTEX_GAP_MM, criterion="distance")
+            if labels.max() == 1:
+                continue
+            n_split += 1
+            widest = max(widest, float(pdist(pts).max()))
+            for label in np.unique(labels):
+                group = pts[labels == label]
+                centre = group.mean(axis=0)
+                tol = max(float(np.linalg.norm(group - centre, axis=1).max()) * 1.001, VERTEX_MIN_TOL_MM)
+                new_vertex = TopoDS_Vertex()
+                builder.MakeVertex(new_vertex, gp_Pnt(*centre), tol)
+                for (edge, end), lab in zip(ends, labels, strict=True):
+                    if lab == label:
+                        ends_of(edge)[end] = new_vertex
+    if not n_split:
+        return None
+
+    reshape = BRepTools_ReShape()
+    for edge, ends in new_ends:
+        copy = TopoDS.Edge(edge.EmptyCopied())  # same curves, pcurves, range and tolerance; no vertices
+        first, last = BRep_Tool.Range_s(edge)
+        for end, old, param, orientation in (
+            (0, TopExp.FirstVertex_s(edge), first, TopAbs_FORWARD),
+            (1, TopExp.LastVertex_s(edge), last, TopAbs_REVERSED),
+        ):
+            vertex = ends.get(end, old)
+            builder.Add(copy, vertex.Oriented(orientation))
+            if end in ends:
+                builder.UpdateVertex(vertex, param, copy, BRep_Tool.Tolerance_s(vertex))
+        reshape.Replace(edge, copy)
+    healed = reshape.Apply(solid)
+    if (
+        healed.ShapeType() != TopAbs_SOLID
+        or not BRepCheck_Analyzer(healed).IsValid()
+        or not _is_closed(healed)
+    ):
+        return None
+    return TopoDS.Solid(healed), n_split, widest
 
 
 def _file_units(reader: STEPControl_Reader) -> list[str]:
@@ -169,8 +291,6 @@ def _is_closed(shape: TopoDS_Shape) -> bool:
         return False
     edge_faces = ShapeAncestorMap()
     TopExp.MapShapesAndAncestors_s(shape, TopAbs_EDGE, TopAbs_FACE, edge_faces)
-    from OCP.BRep import BRep_Tool
-
     for i in range(1, edge_faces.Extent() + 1):
         edge = TopoDS.Edge(edge_faces.FindKey(i))
         if BRep_Tool.Degenerated_s(edge):

@@ -52,7 +52,6 @@ SLOW = {
 # Files that hold closed solids but on which the core does not yet produce a mesh: kept visible as
 # strict xfails (a fix turns them into failures until this list is updated).
 KNOWN_FAILURES = {
-    "trj3_s1-al-214.stp": "OCCT's mesh of this solid is not manifold (2 edges)",
     "trj7_b1-ec-214.stp": "BRepMesh cannot mesh face 354, a B-spline face BRepCheck finds invalid",
     "bug32596_abc_0_13.step": "OCCT's mesh of this solid has open edges",
 }

@@ -36,3 +36,82 @@ def test_truncated_file_is_a_read_error(make_step, tmp_path):
     bad.write_bytes(good[: len(good) // 2])
     with pytest.raises((StepReadError, EmptyGeometryError, NotASolidError)):
         read_step(bad)
+
+
+def _strip_with_joined_corners(tol: float = 1.001):
+    """A B-spline box 40 x 1 x 10 mm whose corners one vertex joins across the 1 mm width, as a file
+    written with a 1 mm tolerance has them (every vertex moved to y = 0, its tolerance covering y = 1)."""
+    from OCP.BRep import BRep_Builder, BRep_Tool
+    from OCP.BRepBuilderAPI import BRepBuilderAPI_NurbsConvert
+    from OCP.BRepPrimAPI import BRepPrimAPI_MakeBox
+    from OCP.BRepTools import BRepTools_ReShape
+    from OCP.gp import gp_Pnt
+    from OCP.TopAbs import TopAbs_EDGE, TopAbs_FORWARD, TopAbs_REVERSED
+    from OCP.TopExp import TopExp, TopExp_Explorer
+    from OCP.TopoDS import TopoDS, TopoDS_Vertex
+
+    box = BRepBuilderAPI_NurbsConvert(BRepPrimAPI_MakeBox(40.0, 1.0, 10.0).Shape(), True).Shape()
+    builder, joined, reshape, seen = BRep_Builder(), {}, BRepTools_ReShape(), []
+    exp = TopExp_Explorer(box, TopAbs_EDGE)
+    while exp.More():
+        edge = TopoDS.Edge(exp.Current().Oriented(TopAbs_FORWARD))
+        exp.Next()
+        if any(edge.IsSame(e) for e in seen):
+            continue
+        seen.append(edge)
+        copy = TopoDS.Edge(edge.EmptyCopied())
+        first, last = BRep_Tool.Range_s(edge)
+        for v, param, orientation in (
+            (TopExp.FirstVertex_s(edge), first, TopAbs_FORWARD),
+            (TopExp.LastVertex_s(edge), last, TopAbs_REVERSED),
+        ):
+            x, _, z = BRep_Tool.Pnt_s(v).Coord()
+            key = (round(x, 6), round(z, 6))
+            if key not in joined:
+                joined[key] = TopoDS_Vertex()
+                builder.MakeVertex(joined[key], gp_Pnt(x, 0.0, z), tol)
+            builder.Add(copy, joined[key].Oriented(orientation))
+            builder.UpdateVertex(joined[key], param, copy, tol)
+        reshape.Replace(edge, copy)
+    return reshape.Apply(box)
+
+
+def test_corners_joined_by_a_coarse_tolerance_are_split(tmp_path, monkeypatch):
+    import numpy as np
+
+    import worker.dst.step_io as step_io
+    from tests.conftest import write_step
+    from tests.worker.dst.meshcheck import assert_watertight, ring_edges
+    from worker.dst.errors import TessellationError
+    from worker.dst.params import SliceParams
+    from worker.dst.pipeline import slice_part
+    from worker.dst.topomesh import _max_vertex_tolerance
+
+    path = write_step(_strip_with_joined_corners(), tmp_path / "joined.step", nurbs=False)
+    params = SliceParams(layer_height=0.2)
+
+    # Read as the file has it, one node stands for two corners and the mesh folds there.
+    with monkeypatch.context() as m:
+        m.setattr(step_io, "split_loose_vertices", lambda solid: None)
+        joined = read_step(path)
+        assert _max_vertex_tolerance(joined.solids[0]) > 1.0
+        with pytest.raises(TessellationError):
+            slice_part(joined, params)
+
+    part = read_step(path)
+    assert any("4 vertex(es)" in w and "up to 1 mm apart" in w for w in part.warnings)
+    assert _max_vertex_tolerance(part.solids[0]) < 1e-3
+    assert solid_volume(part.solids[0]) == pytest.approx(400.0, rel=1e-9)
+    mesh = slice_part(part, params)
+    assert_watertight(mesh)
+    # every ring is the exact 40 x 1 rectangle: its vertices on the sides, its perimeter 82 mm
+    v = mesh.vertices
+    ring = mesh.vertex_plane >= 0
+    x, y = v[ring, 0], v[ring, 1]
+    off_side = np.minimum.reduce([np.abs(x), np.abs(x - 40), np.abs(y), np.abs(y - 1)])
+    assert off_side.max() < 1e-6
+    assert np.all((x > -1e-6) & (x < 40 + 1e-6) & (y > -1e-6) & (y < 1 + 1e-6))
+    edges, plane = ring_edges(mesh)
+    lengths = np.linalg.norm(v[edges[:, 0]] - v[edges[:, 1]], axis=1)
+    perimeter = np.bincount(plane, weights=lengths, minlength=len(mesh.planes.section_z))
+    np.testing.assert_allclose(perimeter, 82.0, rtol=1e-9)
