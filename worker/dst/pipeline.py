@@ -151,6 +151,7 @@ def slice_part(
         "newton_failures": 0,
         "outside_face_points": 0,
         "reordered_crossings": 0,
+        "kink_corners": 0,
         "max_gap_at": "",
     }
     for si, (mesh, topo) in enumerate(zip(meshes, topos, strict=True)):

@@ -26,7 +26,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from OCP.GeomAbs import GeomAbs_Sphere
+from OCP.collections import Array1_double
+from OCP.GeomAbs import GeomAbs_C1, GeomAbs_Sphere
 from OCP.gp import gp_Pnt, gp_Vec
 
 from worker.dst.analytic import evaluator
@@ -47,6 +48,9 @@ GAP_SPAN_REL = 1e-6  # a seed interval this small (relative to its run) cannot h
 # its points checked against the face's trim (the ordinary gap is within one deflection)
 SUSPECT_DEFLECTIONS = 5.0
 TRIM_TOL_MM = 1e-6
+# C0 lines of a face this close to its (u, v) box's sides are its edges' business (relative to the box)
+KINK_MARGIN_REL = 1e-9
+KINK_MIN_SPACING_REL = 1e-9  # a kink this close to a run's end (relative to its length) is that end
 MAX_REFINE_ROUNDS = 40  # halving a segment 24 times takes 1 m down to 60 nm: still failing means broken
 
 
@@ -108,6 +112,7 @@ class SamplingStats:
     newton_failures: int = 0  # seeds with no exact point (dropped; see tangent_segments)
     outside_face_points: int = 0  # points beyond a face's trim (a nearly tangent edge), dropped
     reordered_crossings: int = 0  # crossings put at the section point nearest them (see _solve_crossing)
+    kink_corners: int = 0  # corners placed where a section crosses a C0 line inside a face
     max_gap_mm: float = 0.0
     max_gap_at: str = ""
 
@@ -155,6 +160,7 @@ class RingSampler:
         self._edge_param: dict[tuple[int, int], float] = {}
         # vertex ids where the section changes face or meets a B-rep edge: its curvature may jump there
         self.corner_vids: set[int] = set()
+        self._kinks: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # face -> interior C0 u and v lines
         self._ads = [f.ad for f in mesh.faces]
         self._evals = [evaluator(ad) for ad in self._ads]
         self._analytic = np.array([e is not None for e in self._evals], dtype=bool)
@@ -433,9 +439,123 @@ class RingSampler:
 
     # --- the batched sampler -------------------------------------------------------------------------
     def _sample_runs(self, runs: list[_Run]) -> list[list[int]]:
-        """Vertex ids of each run from start to end inclusive, within the length and chord budgets."""
+        """Vertex ids of each run from start to end inclusive, within the length and chord budgets.
+
+        A run crossing a line where its face's surface is only C0 (a kink inside one B-spline face)
+        is first split there at the exact section point on that line: the section has a corner
+        there, which a midpoint test on a segment straddling it can miss.
+        """
         if not runs:
             return []
+        pieces, owner = self._split_at_kinks(runs)
+        if len(pieces) == len(runs):
+            return self._sample_pieces(runs)
+        out: list[list[int]] = [[] for _ in runs]
+        for i, ids in zip(owner, self._sample_pieces(pieces), strict=True):
+            out[i].extend(ids if not out[i] else ids[1:])
+        return out
+
+    def _surface_kinks(self, f: int) -> tuple[np.ndarray, np.ndarray]:
+        """Interior parameter lines of face ``f`` where its surface is not C1 (C0 knots of a B-spline)."""
+        got = self._kinks.get(f)
+        if got is None:
+            ad, fe = self._ads[f], self.mesh.faces[f]
+            lines = []
+            for n, fill, lo, hi in (
+                (ad.NbUIntervals(GeomAbs_C1), ad.UIntervals, fe.u0, fe.u1),
+                (ad.NbVIntervals(GeomAbs_C1), ad.VIntervals, fe.v0, fe.v1),
+            ):
+                k = np.empty(0)
+                if n > 1:
+                    arr = Array1_double(1, n + 1)
+                    fill(arr, GeomAbs_C1)
+                    k = np.array([arr.Value(i) for i in range(2, n + 1)])
+                    margin = KINK_MARGIN_REL * (hi - lo)
+                    k = k[(k > lo + margin) & (k < hi - margin)]
+                lines.append(k)
+            got = self._kinks[f] = (lines[0], lines[1])
+        return got
+
+    def _split_at_kinks(self, runs: list[_Run]) -> tuple[list[_Run], list[int]]:
+        """Runs cut where their seed path crosses a C0 line of their face, and each piece's run index."""
+        pieces: list[_Run] = []
+        owner: list[int] = []
+        for i, run in enumerate(runs):
+            cuts = self._kink_points(run)
+            if not cuts:
+                pieces.append(run)
+                owner.append(i)
+                continue
+            bounds = [(0.0, run.uv[0], run.start)] + cuts + [(float(run.s[-1]), run.uv[-1], run.end)]
+            for (sa, uva, va), (sb, uvb, vb) in zip(bounds[:-1], bounds[1:], strict=True):
+                inner = (run.s > sa) & (run.s < sb)
+                s_ = np.concatenate([[sa], run.s[inner], [sb]]) - sa
+                uv = np.concatenate([[uva], run.uv[inner], [uvb]])
+                n_seg = max(1, math.ceil(s_[-1] / (self.seg_len * SEGMENT_FILL)))
+                pieces.append(
+                    _Run(run.face, s_, uv, run.max_step, va, vb, n_seg, run.zc, run.plane, run.moved)
+                )
+                owner.append(i)
+        return pieces, owner
+
+    def _kink_points(self, run: _Run) -> list[tuple[float, np.ndarray, int]]:
+        """(arc length, (u, v), vertex id) of the exact section points on the C0 lines the run crosses."""
+        ku, kv = self._surface_kinks(run.face)
+        if not (ku.size or kv.size):
+            return []
+        cuts = []
+        for axis, lines in ((0, ku), (1, kv)):
+            w = run.uv[:, axis]
+            for k in lines.tolist():
+                side = w - k
+                # a seed path crosses the line between two of its points, or at one (the topology
+                # mesh has its nodes on the knot lines)
+                on = np.abs(side) <= KINK_MARGIN_REL * max(abs(k), 1.0)
+                side = np.where(on, 0.0, side)
+                cross = np.flatnonzero((side[:-1] * side[1:] < 0) | on[:-1])
+                for i in cross.tolist():
+                    if on[i] and i == 0:
+                        continue  # the run's start
+                    t = side[i] / (side[i] - side[i + 1]) if not on[i] else 0.0
+                    seed = run.uv[i] + t * (run.uv[i + 1] - run.uv[i])
+                    hit = self._on_iso_line(run, axis, k, float(seed[1 - axis]))
+                    if hit is not None:
+                        s_at = float(run.s[i] + t * (run.s[i + 1] - run.s[i]))
+                        cuts.append((s_at, hit[0], hit[1]))
+        cuts.sort(key=lambda c: c[0])
+        kept, last = [], 0.0
+        end = float(run.s[-1])
+        for s_at, uv, xyz in cuts:
+            if s_at - last > KINK_MIN_SPACING_REL * end and end - s_at > KINK_MIN_SPACING_REL * end:
+                vid = self.pool.add((xyz[0], xyz[1], run.zc), run.plane)
+                self.corner_vids.add(vid)
+                self.stats.kink_corners += 1
+                kept.append((s_at, uv, vid))
+                last = s_at
+        return kept
+
+    def _on_iso_line(self, run: _Run, axis: int, k: float, w: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """The point at the run's height on the face's iso-line (u = k if axis is 0, else v = k),
+        by Newton along it from the other parameter ``w``; None if it does not converge nearby."""
+        ad = self._ads[run.face]
+        p, du, dv = gp_Pnt(), gp_Vec(), gp_Vec()
+        w0 = w
+        for _ in range(NEWTON_MAX_ITER):
+            u, v = (k, w) if axis == 0 else (w, k)
+            ad.D1(u, v, p, du, dv)
+            f = p.Z() - run.zc
+            if abs(f) < LEVEL_TOL_MM:
+                if abs(w - w0) > run.max_step:
+                    return None
+                return np.array([u, v]), np.array(p.Coord())
+            dz = (dv if axis == 0 else du).Z()
+            if dz == 0.0:
+                return None
+            step = -f / dz
+            w += max(-run.max_step, min(run.max_step, step))
+        return None
+
+    def _sample_pieces(self, runs: list[_Run]) -> list[list[int]]:
         # All runs' seed paths in one array, each shifted past the previous, so that one np.interp
         # call seeds every point of every run.
         lengths = np.array([r.s[-1] for r in runs])

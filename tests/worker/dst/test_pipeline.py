@@ -298,3 +298,46 @@ def test_a_plane_just_below_a_horizontal_ridge_gets_straight_single_sides(
     length = np.linalg.norm(mesh.vertices[e[:, 0]] - mesh.vertices[e[:, 1]], axis=1).sum()
     w = math.sqrt(2 * radius * clearance - clearance**2)  # the sliver's half-width at the plane
     assert length == pytest.approx(perimeter(w), abs=1e-4)
+
+
+def _kinked_prism(corners, height: float):
+    """A prism whose whole side wall is ONE face: the extrusion of a closed degree-1 B-spline through
+    ``corners`` (C0 at each), so that the section's corners lie inside that face, not on its edges."""
+    from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeEdge, BRepBuilderAPI_MakeFace, BRepBuilderAPI_MakeWire
+    from OCP.BRepPrimAPI import BRepPrimAPI_MakePrism
+    from OCP.collections import Array1_double, Array1_gp_Pnt, Array1_int
+    from OCP.Geom import Geom_BSplineCurve
+    from OCP.gp import gp_Pnt, gp_Vec
+
+    pts = [*corners, corners[0]]
+    poles, knots, mults = Array1_gp_Pnt(1, len(pts)), Array1_double(1, len(pts)), Array1_int(1, len(pts))
+    for i, (x, y) in enumerate(pts, 1):
+        poles.SetValue(i, gp_Pnt(x, y, 0.0))
+        knots.SetValue(i, float(i - 1))
+        mults.SetValue(i, 2 if i in (1, len(pts)) else 1)
+    wire = BRepBuilderAPI_MakeWire(BRepBuilderAPI_MakeEdge(Geom_BSplineCurve(poles, knots, mults, 1)).Edge())
+    face = BRepBuilderAPI_MakeFace(wire.Wire(), True).Face()
+    return BRepPrimAPI_MakePrism(face, gp_Vec(0, 0, height)).Shape()
+
+
+def test_corners_inside_one_face_are_ring_vertices(tmp_path):
+    """A B-spline face with C0 knot lines (a polyline swept into one face, as many STEP exporters write
+    them) has section corners inside it: each must be a ring vertex, else a segment cuts the corner (the
+    midpoint test can pass on either straight side: up to 0.04 mm off here without the kink split)."""
+    from tests.conftest import write_step
+
+    corners = np.array([(0.0, 0.0), (20.0, 0.0), (26.0, 9.0), (12.0, 15.0), (-3.0, 7.0)])
+    path = write_step(_kinked_prism([tuple(c) for c in corners], 5.0), tmp_path / "kinked.step")
+    mesh = slice_step(path, SliceParams(layer_height=0.2))
+    assert_watertight(mesh)
+    v = mesh.vertices
+    n_planes = len(mesh.planes.section_z)
+    assert mesh.stats["kink_corners"] == 4 * n_planes  # the fifth corner is the curve's end: an edge
+    a, b = corners, np.roll(corners, -1, axis=0)
+    perimeter = float(np.linalg.norm(b - a, axis=1).sum())
+    edges, plane = ring_edges(mesh)
+    lengths = np.linalg.norm(v[edges[:, 0]] - v[edges[:, 1]], axis=1)
+    np.testing.assert_allclose(np.bincount(plane, weights=lengths, minlength=n_planes), perimeter, rtol=1e-9)
+    for j in range(n_planes):
+        ring = v[mesh.vertex_plane == j, :2]
+        assert np.linalg.norm(ring[:, None] - corners[None], axis=2).min(axis=0).max() < 1e-6
