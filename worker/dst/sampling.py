@@ -491,7 +491,8 @@ class RingSampler:
                 inner = (run.s > sa) & (run.s < sb)
                 s_ = np.concatenate([[sa], run.s[inner], [sb]]) - sa
                 uv = np.concatenate([[uva], run.uv[inner], [uvb]])
-                n_seg = max(1, math.ceil(s_[-1] / (self.seg_len * SEGMENT_FILL)))
+                # the run's segments shared out by length (keeps a tiny loop's minimum count)
+                n_seg = max(1, math.ceil(run.n_seg * s_[-1] / max(float(run.s[-1]), 1e-300)))
                 pieces.append(
                     _Run(run.face, s_, uv, run.max_step, va, vb, n_seg, run.zc, run.plane, run.moved)
                 )
