@@ -6,7 +6,7 @@ import math
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from OCP.Bnd import Bnd_Box
@@ -18,7 +18,7 @@ from worker.dst.lowest import snap_extremes, snap_local_extremes
 from worker.dst.meshops import edge_defects, signed_volume
 from worker.dst.params import SliceParams
 from worker.dst.planes import PlanePlan, plan_planes
-from worker.dst.sampling import RingSampler, VertexPool
+from worker.dst.sampling import RingSampler, SamplingStats, VertexPool
 from worker.dst.sections import cut_topology
 from worker.dst.step_io import LoadedPart, read_step
 from worker.dst.stl_io import write_3mf, write_stl
@@ -141,19 +141,7 @@ def slice_part(
         "height_mm": height,
         "local_extremes_snapped": local_extremes,
     }
-    sampling_totals = {
-        "newton_solves": 0,
-        "edge_roots": 0,
-        "fallbacks": 0,
-        "tolerance_gaps": 0,
-        "max_gap_mm": 0.0,
-        "tangent_segments": 0,
-        "newton_failures": 0,
-        "outside_face_points": 0,
-        "reordered_crossings": 0,
-        "kink_corners": 0,
-        "max_gap_at": "",
-    }
+    sampling_totals = SamplingStats()
     for si, (mesh, topo) in enumerate(zip(meshes, topos, strict=True)):
         frac = 0.1 + 0.85 * si / len(meshes)
         flat_planes.update(topo.flat_planes)
@@ -167,16 +155,8 @@ def slice_part(
         all_tris.append(tris)
         for k, v in tstats.items():
             stats[k] = stats.get(k, 0) + v
-        for k in sampling_totals:
-            value = getattr(sampler.stats, k)
-            if k == "max_gap_at":
-                continue
-            if k == "max_gap_mm" and value > sampling_totals[k]:
-                sampling_totals["max_gap_at"] = sampler.stats.max_gap_at
-            sampling_totals[k] = (
-                max(sampling_totals[k], value) if k.startswith("max_") else sampling_totals[k] + value
-            )
-    stats.update(sampling_totals)
+        sampling_totals.add(sampler.stats)
+    stats.update(asdict(sampling_totals))
 
     report("checking mesh", 0.95)
     vertices = pool.xyz.copy()

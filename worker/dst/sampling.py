@@ -23,7 +23,7 @@ iteration), which keeps the Python overhead per ring vertex to a few microsecond
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 from OCP.collections import Array1_double
@@ -115,6 +115,15 @@ class SamplingStats:
     kink_corners: int = 0  # corners placed where a section crosses a C0 line inside a face
     max_gap_mm: float = 0.0
     max_gap_at: str = ""
+
+    def add(self, other: SamplingStats) -> None:
+        """Accumulate another sampler's counts (the largest gap, with its place, is kept)."""
+        for f in fields(self):
+            if f.name == "max_gap_mm":
+                if other.max_gap_mm > self.max_gap_mm:
+                    self.max_gap_mm, self.max_gap_at = other.max_gap_mm, other.max_gap_at
+            elif f.name != "max_gap_at":
+                setattr(self, f.name, getattr(self, f.name) + getattr(other, f.name))
 
 
 @dataclass
