@@ -37,6 +37,10 @@ class TessellationError(DstError):
     code = "tessellation_error"
 
 
+class UnmeshedFaceError(TessellationError):
+    """OCCT's mesher gave a face (larger than the mesh tolerance) no triangles at all."""
+
+
 class ResourceLimitExceeded(DstError):
     """The job would exceed a configured limit (planes, triangles, memory)."""
 

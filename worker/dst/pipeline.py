@@ -13,14 +13,14 @@ from OCP.Bnd import Bnd_Box
 from OCP.BRepBndLib import BRepBndLib
 
 from worker.dst import constants as C
-from worker.dst.errors import ResourceLimitExceeded, TessellationError
+from worker.dst.errors import ResourceLimitExceeded, TessellationError, UnmeshedFaceError
 from worker.dst.lowest import snap_extremes, snap_local_extremes
 from worker.dst.meshops import edge_defects, signed_volume
 from worker.dst.params import SliceParams
 from worker.dst.planes import PlanePlan, plan_planes
 from worker.dst.sampling import RingSampler, SamplingStats, VertexPool
 from worker.dst.sections import cut_topology
-from worker.dst.step_io import LoadedPart, read_step
+from worker.dst.step_io import LoadedPart, heal_wires, read_step
 from worker.dst.stl_io import write_3mf, write_stl
 from worker.dst.tessellate import tessellate_solid
 from worker.dst.topomesh import build_topomesh
@@ -89,17 +89,46 @@ def slice_part(
     meshes = []
     for si, solid in enumerate(part.solids):
         report(f"meshing solid {si + 1}/{len(part.solids)}", 0.1 * si / len(part.solids))
-        meshes.append(
-            build_topomesh(
+        try:
+            mesh = build_topomesh(
                 solid, deflection=deflection, angular=C.TOPO_ANGULAR_RAD, merge_tol=C.MERGE_TOL_REL * diag
             )
-        )
+        except UnmeshedFaceError as exc:
+            # A face OCCT cannot mesh often has gaps or zero-length edges in its boundary: repaired
+            # within the mesh's own deflection, the same solid is meshed again (and is the one the
+            # sections and the report use). Without a repair, or if it does not help, the first error.
+            healed = heal_wires(solid, deflection)
+            if healed is None:
+                raise
+            solid, change = healed
+            try:
+                mesh = build_topomesh(
+                    solid, deflection=deflection, angular=C.TOPO_ANGULAR_RAD, merge_tol=C.MERGE_TOL_REL * diag
+                )
+            except TessellationError:
+                raise exc from None
+            part.solids[si] = solid
+            warnings.append(
+                f"solid {si + 1}: {exc}; its face boundaries were repaired (gaps closed, edges under "
+                f"{deflection:.2g} mm dropped; volume changed by {change:.1e} of itself) and it was meshed"
+            )
+        meshes.append(mesh)
     timings["topomesh"] = time.perf_counter() - t
     for si, mesh in enumerate(meshes):
         for face, area in mesh.filled_faces:
             warnings.append(
                 f"solid {si + 1}: OCCT could not mesh face {face + 1} (a sliver of {area:.2g} mm^2, "
                 "smaller than the mesh tolerance); its hole was closed from the neighbouring faces"
+            )
+        if mesh.dropped_triangles:
+            warnings.append(
+                f"solid {si + 1}: {mesh.dropped_triangles} triangle(s) of OCCT's mesh folded a face over "
+                "or lay on a neighbouring face and were dropped"
+            )
+        for face, n_tris, dist in mesh.patched_faces:
+            warnings.append(
+                f"solid {si + 1}: a hole OCCT's mesh left in face {face + 1} (a sliver between nearly "
+                f"coincident edges) was closed with {n_tris} triangle(s) within {dist:.2g} mm of the face"
             )
         if mesh.merged_open_nodes:
             warnings.append(
@@ -186,6 +215,7 @@ def slice_part(
             "area, and slicers disagree on it (Cura keeps the outline above the face, PrusaSlicer the one "
             "below); the DST mesh gives that plane one closed outline"
         )
+    stats["flat_planes"] = sorted(flat_planes)
     stats["triangles"] = len(triangles)
     stats["vertices"] = len(vertices)
     stats["ring_vertices"] = int(ring.sum())

@@ -25,7 +25,7 @@ from OCP.collections import Sequence_TCollection_AsciiString
 from OCP.gp import gp_Pnt
 from OCP.GProp import GProp_GProps
 from OCP.IFSelect import IFSelect_ReturnStatus
-from OCP.ShapeFix import ShapeFix_Solid
+from OCP.ShapeFix import ShapeFix_Solid, ShapeFix_Wireframe
 from OCP.STEPControl import STEPControl_Reader
 from OCP.TopAbs import (
     TopAbs_EDGE,
@@ -48,6 +48,7 @@ SEWING_TOL_MM = 1e-3  # gaps up to 1 um between open shells' edges are closed by
 # Corners farther apart than this that one vertex joins (a file's coarse tolerance) are split apart
 LOOSE_VERTEX_GAP_MM = 0.05
 VERTEX_MIN_TOL_MM = 1e-7  # OCCT's Precision::Confusion()
+HEAL_VOLUME_REL = 1e-4  # a repair of face boundaries may change the solid's volume by this much at most
 
 
 @dataclass
@@ -249,6 +250,34 @@ def split_loose_vertices(solid: TopoDS_Solid) -> tuple[TopoDS_Solid, int, float]
     ):
         return None
     return TopoDS.Solid(healed), n_split, widest
+
+
+def heal_wires(solid: TopoDS_Solid, precision: float) -> tuple[TopoDS_Solid, float] | None:
+    """Close the gaps in the solid's face boundaries and drop its edges shorter than ``precision``
+    (OCCT's ``ShapeFix_Wireframe``): a face whose wire has zero-length edges and gaps cannot be
+    meshed. Kept only if OCCT finds the result a valid closed solid whose volume differs by less
+    than ``HEAL_VOLUME_REL``; otherwise, or when nothing was fixed, None.
+
+    Returns (solid, relative volume change).
+    """
+    fix = ShapeFix_Wireframe(solid)
+    fix.SetPrecision(precision)
+    fix.ModeDropSmallEdges = True
+    gaps, small = fix.FixWireGaps(), fix.FixSmallEdges()
+    if not (gaps or small):
+        return None
+    healed = fix.Shape()
+    if (
+        healed.ShapeType() != TopAbs_SOLID
+        or not BRepCheck_Analyzer(healed).IsValid()
+        or not _is_closed(healed)
+    ):
+        return None
+    before = solid_volume(solid)
+    change = abs(solid_volume(healed) - before) / abs(before)
+    if change > HEAL_VOLUME_REL:
+        return None
+    return TopoDS.Solid(healed), change
 
 
 def _file_units(reader: STEPControl_Reader) -> list[str]:

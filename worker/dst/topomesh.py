@@ -37,13 +37,16 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from worker.dst.errors import TessellationError
+from worker.dst.errors import TessellationError, UnmeshedFaceError
 from worker.dst.exact import EdgeEval, FaceEval
 from worker.dst.meshops import edge_defects, open_edges, signed_volume
 
 # BRepMesh leaves a face without triangles: closed from its neighbours' nodes if its box diagonal
 # is within this many deflections (any triangle across it is then within the mesh's tolerance).
 TINY_FACE_DEFLECTIONS = 1.0
+# Holes BRepMesh leaves inside a face are patched only up to this many border nodes, and only where
+# at most this many of its triangles (and a tenth of them) must be dropped.
+HOLE_MAX_NODES = 200
 
 
 @dataclass
@@ -60,6 +63,10 @@ class TopoMesh:
     # boundary nodes: (face index, area mm^2)
     filled_faces: tuple[tuple[int, float], ...] = ()
     merged_open_nodes: int = 0  # node copies merged within the B-rep's vertex tolerance to close cracks
+    # holes BRepMesh left inside a face, closed with triangles within the deflection of its surface:
+    # (face index, triangles added, largest distance of the patch from the surface, mm)
+    patched_faces: tuple[tuple[int, int, float], ...] = ()
+    dropped_triangles: int = 0  # BRepMesh triangles dropped where a face folded over or was doubled
 
     @property
     def n_nodes(self) -> int:
@@ -85,6 +92,8 @@ def build_topomesh(solid: TopoDS_Shape, *, deflection: float, angular: float, me
     faces: list[FaceEval] = []
     xyz_parts, uv_parts, tri_parts, face_parts = [], [], [], []
     edge_local: list[tuple[int, np.ndarray]] = []  # (brep edge index, global-offset node ids)
+    edge_faces: dict[int, set[int]] = {}  # brep edge index -> faces bounded by it
+    stray: list[np.ndarray] = []  # per face: its triangles on a border that no edge polygon bounds
     offset = 0
     unmeshed: list[tuple[int, TopoDS_Face, np.ndarray, np.ndarray]] = []  # index, face, box
     exp = TopExp_Explorer(solid, TopAbs_FACE)
@@ -96,7 +105,7 @@ def build_topomesh(solid: TopoDS_Shape, *, deflection: float, angular: float, me
         if tri is None or tri.NbTriangles() == 0:
             lo, hi = _face_box(face)
             if np.linalg.norm(hi - lo) > TINY_FACE_DEFLECTIONS * deflection:
-                raise TessellationError(
+                raise UnmeshedFaceError(
                     f"face {len(faces) + 1} could not be meshed (degenerate or invalid face)"
                 )
             # A sliver smaller than the mesh's own tolerance (BRepMesh skips those): closed below
@@ -104,46 +113,48 @@ def build_topomesh(solid: TopoDS_Shape, *, deflection: float, angular: float, me
             unmeshed.append((len(faces), face, lo, hi))
             faces.append(FaceEval(BRepAdaptor_Surface(face)))
             continue
-        trsf = loc.Transformation()
-        n = tri.NbNodes()
-        pts = np.array([tri.Node(i).Coord() for i in range(1, n + 1)], dtype=np.float64).reshape(-1, 3)
-        if not loc.IsIdentity():
-            pts = np.array([tri.Node(i).Transformed(trsf).Coord() for i in range(1, n + 1)]).reshape(-1, 3)
-        uvs = np.array([tri.UVNode(i).Coord() for i in range(1, n + 1)], dtype=np.float64).reshape(-1, 2)
-        t = np.array([tri.Triangle(i).Get() for i in range(1, tri.NbTriangles() + 1)], dtype=np.int64) - 1
-        if face.Orientation() == TopAbs_REVERSED:
-            t = t[:, ::-1]
+        pts, uvs, t = _face_mesh(face, tri, loc)
+        n = len(pts)
         face_idx = len(faces)
         faces.append(FaceEval(BRepAdaptor_Surface(face)))
         xyz_parts.append(pts)
         uv_parts.append(uvs)
         tri_parts.append(t + offset)
         face_parts.append(np.full(len(t), face_idx, dtype=np.int64))
+        polygons = []
         eexp = TopExp_Explorer(face, TopAbs_EDGE)
         while eexp.More():
             edge = TopoDS.Edge(eexp.Current())
             eexp.Next()
             if BRep_Tool.Degenerated_s(edge):
                 continue
+            edge_faces.setdefault(edge_map.FindIndex(edge) - 1, set()).add(face_idx)
             pot = BRep_Tool.PolygonOnTriangulation_s(edge, tri, loc)
             if pot is None:
                 continue
             nodes = pot.Nodes()
             ids = np.array([nodes.Value(i) for i in range(nodes.Lower(), nodes.Upper() + 1)], dtype=np.int64)
             edge_local.append((edge_map.FindIndex(edge) - 1, ids - 1 + offset))
+            polygons.append(ids - 1)
+        stray.append(_stray_triangles(pts, t, polygons, merge_tol))
         offset += n
 
     local_xyz = np.concatenate(xyz_parts)
     local_uv = np.concatenate(uv_parts)
     local_tris = np.concatenate(tri_parts)
     tri_face = np.concatenate(face_parts)
+    stray_mask = np.concatenate(stray)
 
     glob, xyz = _merge_nodes(local_xyz, merge_tol)
     # Pole and seam copies merged into one node leave triangles with a repeated corner: dropped.
-    tris, tri_uv, tri_face = _drop_degenerate(glob[local_tris], local_uv[local_tris], tri_face)
+    tris, tri_uv, tri_face, stray_mask = _drop_degenerate(
+        glob[local_tris], local_uv[local_tris], tri_face, stray_mask
+    )
 
     if unmeshed:  # first, so that a sliver keeps its shape where its nodes are far enough apart
+        n_before = len(tris)
         tris, tri_uv, tri_face = _fill_tiny_faces(xyz, tris, tri_uv, tri_face, unmeshed, merge_tol)
+        stray_mask = np.concatenate([stray_mask, np.zeros(len(tris) - n_before, dtype=bool)])
 
     merged_open = 0
     holes = open_edges(tris, len(xyz))
@@ -153,20 +164,23 @@ def build_topomesh(solid: TopoDS_Shape, *, deflection: float, angular: float, me
         remap = _merge_open_nodes(xyz, holes, min(_max_vertex_tolerance(solid), deflection))
         if remap is not None:
             glob = remap[glob]
-            tris, tri_uv, tri_face = _drop_degenerate(remap[tris], tri_uv, tri_face)
-            # renumber the nodes still in use (every node of a topology mesh is on a triangle)
-            used = np.unique(tris)
-            new_id = np.full(len(xyz), -1, dtype=np.int64)
-            new_id[used] = np.arange(len(used))
-            merged_open = len(xyz) - len(used)
-            xyz, tris, glob = xyz[used], new_id[tris], new_id[glob]
+            tris, tri_uv, tri_face, stray_mask = _drop_degenerate(remap[tris], tri_uv, tri_face, stray_mask)
+            n_before = len(xyz)
+            xyz, tris, glob = _drop_unused_nodes(xyz, tris, glob)
+            merged_open = n_before - len(xyz)
 
-    edge_of: dict[tuple[int, int], int] = {}
-    for brep_edge, ids in edge_local:
-        g = glob[ids]
-        for a, b in zip(g[:-1].tolist(), g[1:].tolist(), strict=True):
-            if a != b and a >= 0 and b >= 0:
-                edge_of[(a, b) if a < b else (b, a)] = brep_edge
+    edge_of = _edges_on_brep(edge_local, glob)
+    patched: list[tuple[int, int, float]] = []
+    dropped = 0
+    if any(edge_defects(tris, len(xyz))):
+        # BRepMesh left part of a face out, folded it over (a sliver a few micrometres wide
+        # between two nearly coincident edges) or meshed two faces on top of each other.
+        tris, tri_uv, tri_face, patched, dropped = _patch_holes(
+            xyz, tris, tri_uv, tri_face, stray_mask, faces, edge_faces, edge_of, deflection
+        )
+        if dropped or patched:
+            xyz, tris, glob = _drop_unused_nodes(xyz, tris, glob)
+            edge_of = _edges_on_brep(edge_local, glob)
 
     _check_closed(tris)
     if signed_volume(xyz, tris) < 0:
@@ -183,7 +197,45 @@ def build_topomesh(solid: TopoDS_Shape, *, deflection: float, angular: float, me
         deflection=deflection,
         filled_faces=tuple((fi, _face_area(face)) for fi, face, _, _ in unmeshed),
         merged_open_nodes=merged_open,
+        patched_faces=tuple(patched),
+        dropped_triangles=dropped,
     )
+
+
+def _face_mesh(face: TopoDS_Face, tri, loc: TopLoc_Location):
+    """A face's BRepMesh triangulation: node positions (n, 3) with the location applied, their
+    (u, v) (n, 2) and the triangles (m, 3) as 0-based node ids, counter-clockwise from outside."""
+    n = tri.NbNodes()
+    if loc.IsIdentity():
+        pts = np.array([tri.Node(i).Coord() for i in range(1, n + 1)], dtype=np.float64).reshape(-1, 3)
+    else:
+        trsf = loc.Transformation()
+        pts = np.array([tri.Node(i).Transformed(trsf).Coord() for i in range(1, n + 1)]).reshape(-1, 3)
+    uvs = np.array([tri.UVNode(i).Coord() for i in range(1, n + 1)], dtype=np.float64).reshape(-1, 2)
+    t = np.array([tri.Triangle(i).Get() for i in range(1, tri.NbTriangles() + 1)], dtype=np.int64) - 1
+    if face.Orientation() == TopAbs_REVERSED:
+        t = t[:, ::-1]
+    return pts, uvs, t
+
+
+def _drop_unused_nodes(xyz: np.ndarray, tris: np.ndarray, glob: np.ndarray):
+    """Renumber the nodes still on a triangle (every node of a topology mesh must be); nodes of the
+    per-face meshes that lost theirs map to -1. Returns (xyz, tris, glob)."""
+    used = np.unique(tris)
+    new_id = np.full(len(xyz), -1, dtype=np.int64)
+    new_id[used] = np.arange(len(used))
+    return xyz[used], new_id[tris], np.where(glob >= 0, new_id[np.maximum(glob, 0)], -1)
+
+
+def _edges_on_brep(edge_local: list[tuple[int, np.ndarray]], glob: np.ndarray) -> dict[tuple[int, int], int]:
+    """Mesh edges (a < b) lying on a B-rep edge -> that edge's index, from the faces' edge polygons."""
+    edge_of: dict[tuple[int, int], int] = {}
+    for brep_edge, ids in edge_local:
+        g = glob[ids]
+        for a, b in zip(g[:-1].tolist(), g[1:].tolist(), strict=True):
+            if a != b and a >= 0 and b >= 0:
+                edge_of[(a, b) if a < b else (b, a)] = brep_edge
+    return edge_of
 
 
 def _max_vertex_tolerance(solid: TopoDS_Shape) -> float:
@@ -209,10 +261,10 @@ def _merge_open_nodes(xyz: np.ndarray, holes: np.ndarray, tol: float) -> np.ndar
     return remap
 
 
-def _drop_degenerate(tris: np.ndarray, tri_uv: np.ndarray, tri_face: np.ndarray):
-    """The triangles (with their (u, v) and faces) that do not repeat a corner."""
+def _drop_degenerate(tris: np.ndarray, *per_triangle: np.ndarray):
+    """The triangles that do not repeat a corner, with the same rows of each per-triangle array."""
     keep = (tris[:, 0] != tris[:, 1]) & (tris[:, 1] != tris[:, 2]) & (tris[:, 2] != tris[:, 0])
-    return tris[keep], tri_uv[keep], tri_face[keep]
+    return (tris[keep], *(a[keep] for a in per_triangle))
 
 
 def _face_area(face: TopoDS_Face) -> float:
@@ -274,6 +326,186 @@ def _fill_tiny_faces(xyz, tris, tri_uv, tri_face, unmeshed, merge_tol):
         np.concatenate([tri_uv, np.array(new_uv)]),
         np.concatenate([tri_face, np.array(new_f, dtype=np.int64)]),
     )
+
+
+def _stray_triangles(pts: np.ndarray, tris: np.ndarray, polygons: list[np.ndarray], tol: float) -> np.ndarray:
+    """Mask of one face's triangles that have an edge on the border of the face's triangulation but
+    on none of its edges' polygons (BRepMesh folded the face over, or cut off a sliver of it).
+    Border edges shorter than ``tol`` (the copies of a pole) do not count."""
+    border = open_edges(tris, len(pts))
+    if not len(border):
+        return np.zeros(len(tris), dtype=bool)
+    n = len(pts)
+    bounded = set()
+    for ids in polygons:
+        lo, hi = np.minimum(ids[:-1], ids[1:]), np.maximum(ids[:-1], ids[1:])
+        bounded.update((lo * n + hi).tolist())
+    lo, hi = border.min(axis=1), border.max(axis=1)
+    loose = ~np.isin(lo * n + hi, np.fromiter(bounded, dtype=np.int64, count=len(bounded)))
+    loose &= np.linalg.norm(pts[border[:, 0]] - pts[border[:, 1]], axis=1) > tol
+    if not loose.any():
+        return np.zeros(len(tris), dtype=bool)
+    bad = set((lo[loose] * n + hi[loose]).tolist())
+    e = np.sort(np.stack([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]], axis=1), axis=2)
+    return np.isin(e[..., 0] * n + e[..., 1], np.fromiter(bad, dtype=np.int64, count=len(bad))).any(axis=1)
+
+
+def _hole_loops(tris: np.ndarray, n_nodes: int) -> list[list[int]] | None:
+    """The holes of a mesh as simple node loops, each following its open edges (in the direction its
+    triangles hold them). Holes that touch at a node are split there into loops. None if the open
+    edges do not form closed loops."""
+    succ: dict[int, list[int]] = {}
+    for a, b in open_edges(tris, n_nodes).tolist():
+        succ.setdefault(a, []).append(b)
+    loops = []
+    while succ:
+        path = [next(iter(succ))]
+        at = {path[0]: 0}
+        while True:
+            nxt = succ.get(path[-1])
+            if not nxt:
+                return None  # an open edge ends where no open edge starts
+            b = nxt.pop()
+            if not nxt:
+                del succ[path[-1]]
+            if b in at:  # a loop closes: cut it off the path, keep walking from b
+                i = at[b]
+                loop = path[i:]
+                loops.append(loop)
+                for node in loop[1:]:
+                    del at[node]
+                path = path[: i + 1]
+                if not succ.get(b):
+                    break
+            else:
+                at[b] = len(path)
+                path.append(b)
+        if len(path) > 1:
+            return None
+    return loops
+
+
+def _doubled_triangles(tris: np.ndarray) -> np.ndarray:
+    """Mask of the triangles whose reverse (the same three nodes, turned the other way) is also in
+    the mesh: two faces meshed on top of each other, back to back, enclosing nothing."""
+    first = np.argmin(tris, axis=1)
+    rows = np.arange(len(tris))[:, None]
+    canon = tris[rows, (first[:, None] + np.arange(3)) % 3]  # smallest node first, same turn
+    n = int(tris.max()) + 1
+    key = (canon[:, 0] * n + canon[:, 1]) * n + canon[:, 2]
+    rkey = (canon[:, 0] * n + canon[:, 2]) * n + canon[:, 1]
+    return np.isin(key, rkey)
+
+
+def _repeated_edge_triangles(tris: np.ndarray, n_nodes: int, keep: np.ndarray) -> np.ndarray:
+    """Mask of the kept triangles holding a directed edge that another kept triangle also holds."""
+    e = np.stack([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]], axis=1)
+    key = e[..., 0] * n_nodes + e[..., 1]  # (m, 3)
+    uniq, counts = np.unique(key[keep], return_counts=True)
+    return keep & np.isin(key, uniq[counts > 1]).any(axis=1)
+
+
+def _min_area_triangulation(pts: np.ndarray) -> list[tuple[int, int, int]] | None:
+    """Triangles (i, j, k), i < j < k, over the closed polygon ``pts`` (k, 3) with the least total
+    area and no degenerate triangle (dynamic programming over its diagonals, O(k^3)); None if
+    there is none."""
+    k = len(pts)
+    if k < 3:
+        return None
+    scale = max(float(np.ptp(pts, axis=0).max()), 1e-300)
+    min_area = 1e-12 * scale * scale
+    cost = np.full((k, k), np.inf)
+    best = np.full((k, k), -1, dtype=np.int64)
+    for a in range(k - 1):
+        cost[a, a + 1] = 0.0
+    for span in range(2, k):
+        for a in range(k - span):
+            b = a + span
+            mids = np.arange(a + 1, b)
+            area = 0.5 * np.linalg.norm(np.cross(pts[mids] - pts[a], pts[b] - pts[a]), axis=1)
+            c = cost[a, mids] + cost[mids, b] + np.where(area > min_area, area, np.inf)
+            m = int(np.argmin(c))
+            cost[a, b], best[a, b] = c[m], mids[m]
+    if not np.isfinite(cost[0, k - 1]):
+        return None
+    out, stack = [], [(0, k - 1)]
+    while stack:
+        a, b = stack.pop()
+        if b - a < 2:
+            continue
+        m = int(best[a, b])
+        out.append((a, m, b))
+        stack += [(a, m), (m, b)]
+    return out
+
+
+def _patch_holes(xyz, tris, tri_uv, tri_face, stray_mask, faces, edge_faces, edge_of, deflection):
+    """Repair BRepMesh's mesh where it folded a face over, doubled it or left part of it out.
+
+    Dropped: the stray triangles, pairs of back-to-back triangles (two faces meshed on top of each
+    other), and the triangles of a folded face on an edge then held twice in one direction. Each
+    hole left is closed with its least-area triangulation on the face that owns it (the face across
+    the hole's B-rep edges, or the face around it); every patch must lie within ``deflection`` of
+    that face's surface (checked at its corners, edge midpoints and centroids). If any step fails the
+    mesh is returned as it came, for the closedness check to refuse.
+
+    Returns (tris, tri_uv, tri_face, [(face, triangles added, distance mm)], triangles dropped).
+    """
+    unpatched = tris, tri_uv, tri_face, [], 0
+    keep = ~stray_mask & ~_doubled_triangles(tris)
+    folded = np.isin(tri_face, np.unique(tri_face[stray_mask]))
+    keep &= ~(_repeated_edge_triangles(tris, len(xyz), keep) & folded)
+    if np.count_nonzero(~keep) > min(HOLE_MAX_NODES, 0.1 * len(tris)):
+        return unpatched  # not a local defect
+    t2, uv2, f2 = tris[keep], tri_uv[keep], tri_face[keep]
+    loops = _hole_loops(t2, len(xyz))
+    if loops is None or edge_defects(t2, len(xyz))[1]:
+        return unpatched
+    holder = {}  # directed open edge -> face of the triangle holding it
+    for col in range(3):
+        a, b = t2[:, col], t2[:, (col + 1) % 3]
+        holder.update(zip(zip(a.tolist(), b.tolist(), strict=True), f2.tolist(), strict=True))
+    new_t, new_uv, new_f, patched = [], [], [], []
+    for loop in loops:
+        votes: dict[int, int] = {}
+        for a, b in zip(loop, loop[1:] + loop[:1], strict=True):
+            brep_edge = edge_of.get((a, b) if a < b else (b, a))
+            inside = holder[(a, b)]
+            for f in edge_faces.get(brep_edge, {inside}) - ({inside} if brep_edge is not None else set()):
+                votes[f] = votes.get(f, 0) + 1
+        if not votes or len(loop) > HOLE_MAX_NODES:
+            return unpatched
+        owner = max(votes, key=votes.get)
+        pts = xyz[loop]
+        tri = _min_area_triangulation(pts)
+        if tri is None:
+            return unpatched
+        ids = np.asarray(loop)
+        sas = ShapeAnalysis_Surface(BRep_Tool.Surface_s(faces[owner].face))
+        corners = np.array([(i, k, j) for i, j, k in tri])  # against the hole's direction
+        samples = np.concatenate([pts, np.einsum("wc,tcx->twx", _PATCH_WEIGHTS, pts[corners]).reshape(-1, 3)])
+        dist = 0.0
+        for q in samples.tolist():
+            sas.ValueOfUV(gp_Pnt(*q), 0.01 * deflection)
+            dist = max(dist, sas.Gap())
+        if dist > deflection:
+            return unpatched
+        uv = np.array([sas.ValueOfUV(gp_Pnt(*q), 0.01 * deflection).Coord() for q in pts.tolist()])
+        new_t.append(ids[corners])
+        new_uv.append(uv[corners])
+        new_f.append(np.full(len(corners), owner, dtype=np.int64))
+        patched.append((owner, len(corners), dist))
+    return (
+        np.vstack([t2, *new_t]),
+        np.concatenate([uv2, *new_uv]),
+        np.concatenate([f2, *new_f]),
+        patched,
+        int(np.count_nonzero(~keep)),
+    )
+
+
+# points of a triangle where a patch is checked against its surface: edge midpoints and centroid
+_PATCH_WEIGHTS = np.array([[0.5, 0.5, 0.0], [0.0, 0.5, 0.5], [0.5, 0.0, 0.5], [1 / 3, 1 / 3, 1 / 3]])
 
 
 def _best_fan(pts: np.ndarray) -> list[tuple[int, int, int]] | None:
