@@ -471,7 +471,11 @@ def _patch_holes(xyz, tris, tri_uv, tri_face, stray_mask, faces, edge_faces, edg
         for a, b in zip(loop, loop[1:] + loop[:1], strict=True):
             brep_edge = edge_of.get((a, b) if a < b else (b, a))
             inside = holder[(a, b)]
-            for f in edge_faces.get(brep_edge, {inside}) - ({inside} if brep_edge is not None else set()):
+            if brep_edge is None:  # an edge inside a face: the hole is in that face
+                candidates = {inside}
+            else:  # on a B-rep edge: the hole is in the face across it
+                candidates = edge_faces.get(brep_edge, set()) - {inside}
+            for f in candidates:
                 votes[f] = votes.get(f, 0) + 1
         if not votes or len(loop) > HOLE_MAX_NODES:
             return unpatched
