@@ -13,6 +13,8 @@ All points are in millimetres in the part's placement (``BRepAdaptor_*`` apply f
 
 from __future__ import annotations
 
+import math
+
 from OCP.BRep import BRep_Tool
 from OCP.BRepAdaptor import BRepAdaptor_Curve, BRepAdaptor_Surface
 from OCP.Extrema import Extrema_ExtPC
@@ -23,6 +25,9 @@ from OCP.TopAbs import TopAbs_IN, TopAbs_ON
 from scipy.optimize import brentq
 
 from worker.dst.constants import ROOT_XTOL
+
+# a walk along a section curve stops this close (mm, along the curve) to the point nearest its target
+WALK_TOL_MM = 1e-7
 
 _RTOL = 4.5 * 2.220446049250313e-16  # brentq refuses anything below 4 * machine epsilon
 
@@ -96,6 +101,45 @@ class FaceEval:
         u, v = ua + t * (ub - ua), va + t * (vb - va)
         x, y, z = self.point(u, v)
         return x, y, z, u, v
+
+    def walk_level(
+        self, u: float, v: float, c: float, target: tuple[float, float], *, step: float, max_steps: int
+    ) -> tuple[float, float, float, float]:
+        """From (u, v) on the section ``z = c``, walk along that section curve (the branch through the
+        start, never jumping to another) to its point nearest ``target`` (x, y): steps of at most
+        ``step`` mm along the curve's tangent, each pulled back onto ``z = c`` along the height
+        gradient. Returns (x, y, u, v). Raises ExactFailure if the walk leaves the surface's
+        parameter range, meets a horizontal point (no tangent) or does not arrive."""
+        p, du, dv = self._p, self._du, self._dv
+        tx, ty = target
+        for _ in range(max_steps):
+            self.ad.D1(u, v, p, du, dv)
+            gu, gv = du.Z(), dv.Z()
+            su, sv = -gv, gu  # along the level curve in (u, v): normal to the height gradient
+            tan_x, tan_y = du.X() * su + dv.X() * sv, du.Y() * su + dv.Y() * sv
+            speed = math.hypot(tan_x, tan_y)
+            if speed < 1e-12:
+                raise ExactFailure("the section curve has no tangent here")
+            along = ((tx - p.X()) * tan_x + (ty - p.Y()) * tan_y) / speed
+            if abs(along) < WALK_TOL_MM:
+                return p.X(), p.Y(), u, v
+            h = math.copysign(min(abs(along), step), along) / speed
+            u, v = u + su * h, v + sv * h
+            for _ in range(30):
+                self.ad.D1(u, v, p, du, dv)
+                g = p.Z() - c
+                if abs(g) < 1e-12:
+                    break
+                gu, gv = du.Z(), dv.Z()
+                n2 = gu * gu + gv * gv
+                if n2 < 1e-24:
+                    raise ExactFailure("flat spot on the walk")
+                u, v = u - g * gu / n2, v - g * gv / n2
+            else:
+                raise ExactFailure("the walk lost the section curve")
+            if not (self.u0 <= u <= self.u1 and self.v0 <= v <= self.v1):
+                raise ExactFailure("the walk left the surface")
+        raise ExactFailure("the walk did not arrive")
 
 
 class EdgeEval:

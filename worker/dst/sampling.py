@@ -47,6 +47,9 @@ GAP_SPAN_REL = 1e-6  # a seed interval this small (relative to its run) cannot h
 # A run whose exact end lies more than this many topology deflections from its topology crossing has
 # its points checked against the face's trim (the ordinary gap is within one deflection)
 SUSPECT_DEFLECTIONS = 5.0
+# steps (in topology deflections) of a walk along a section curve: short enough that the pull back
+# onto the plane cannot reach another branch of the section
+WALK_STEP_DEFLECTIONS = 5.0
 TRIM_TOL_MM = 1e-6
 # C0 lines of a face this close to its (u, v) box's sides are its edges' business (relative to the box)
 KINK_MARGIN_REL = 1e-9
@@ -232,23 +235,34 @@ class RingSampler:
         ub, vb = mesh.tri_uv[t, row.index(b)]
         face = int(mesh.tri_face[t])
         try:
-            x, y, _, _, _ = mesh.faces[face].root_on_uv_segment(ua, va, ub, vb, zc)
+            x, y, _, ur, vr = mesh.faces[face].root_on_uv_segment(ua, va, ub, vb, zc)
             near = topo.cross_xyz[c]
             d_root = math.hypot(x - near[0], y - near[1])
             if d_root > SUSPECT_DEFLECTIONS * mesh.deflection:
                 # Along an edge that runs nearly level over the surface (a long triangle across a
                 # ridge or a valley just off the plane), the surface's root can lie far from the
                 # edge's crossing, out of order with its neighbours along the section (a ring that
-                # doubles back). The point of the section nearest the crossing keeps the order,
-                # where Newton finds it inside the face.
-                p, uv = self._newton_from_crossing(t, a, b, (ua, va), (ub, vb), zc)
-                if (
-                    p is not None
-                    and math.hypot(p[0] - near[0], p[1] - near[1]) < d_root
-                    and mesh.faces[face].contains(float(uv[0]), float(uv[1]), tol=TRIM_TOL_MM)
-                ):
-                    x, y = float(p[0]), float(p[1])
-                    self.stats.reordered_crossings += 1
+                # doubles back). The point of the root's own section curve nearest the crossing keeps
+                # the order: walked to along that curve, since Newton from the crossing can land on
+                # the other side of a ridge a few micrometres above the plane (a gap narrower than
+                # the crossing's distance from either side).
+                try:
+                    px, py, pu, pv = mesh.faces[face].walk_level(
+                        ur,
+                        vr,
+                        zc,
+                        (float(near[0]), float(near[1])),
+                        step=WALK_STEP_DEFLECTIONS * mesh.deflection,
+                        max_steps=int(d_root / (WALK_STEP_DEFLECTIONS * mesh.deflection)) + 100,
+                    )
+                except ExactFailure:
+                    pass
+                else:
+                    if math.hypot(px - near[0], py - near[1]) < d_root and mesh.faces[face].contains(
+                        pu, pv, tol=TRIM_TOL_MM
+                    ):
+                        x, y = px, py
+                        self.stats.reordered_crossings += 1
         except ExactFailure:
             # The surface at a node's (u, v) can differ from the node (an edge point) by the file's
             # tolerance, so a plane that close to a node is not bracketed: Newton from the seed.
@@ -365,8 +379,27 @@ class RingSampler:
             n_seg = max(min_seg if single else 1, math.ceil(s[-1] / (self.seg_len * SEGMENT_FILL)))
             step = 2.0 * float(scale[i0 : i0 + count].max())
             moved = tuple((exact[k].copy(), float(gap[k]) + self.seg_len) for k in (r, r1) if far[k])
+            if moved:
+                uv = self._seeds_toward_exact_ends(
+                    int(faces[i0]), uv, s, exact[r] if far[r] else None, exact[r1] if far[r1] else None
+                )
             runs.append(_Run(int(faces[i0]), s, uv, step, vids[r], vids[r1], n_seg, zc, j, moved))
         return runs
+
+    def _seeds_toward_exact_ends(self, face: int, uv: np.ndarray, s: np.ndarray, start, end) -> np.ndarray:
+        """A run's seed path moved with its ends: where an exact end lies far from its topology
+        crossing (``start``/``end`` its position, else None), the (u, v) displacement of that end,
+        fading linearly along the run's arc length. The topology path of a plane a few micrometres
+        below a ridge runs on the far side of the ridge's top line (its triangles span the ridge), and
+        Newton from seeds there lands on the section's other branch; moved with the ends (which were
+        solved on the right one), they seed the right branch."""
+        ev = self.mesh.faces[face]
+        shift = np.zeros((2, 2))
+        for k, (end_xyz, idx) in enumerate(((start, 0), (end, -1))):
+            if end_xyz is not None:
+                shift[k] = np.subtract(ev.uv_near(tuple(end_xyz), tuple(uv[idx])), uv[idx])
+        w = (s / s[-1])[:, None] if s[-1] > 0 else np.zeros((len(s), 1))
+        return uv + (1.0 - w) * shift[0] + w * shift[1]
 
     def pinned_loop(self, li: int) -> list[int]:
         """Ring of a pinned loop: every topology crossing, plus points where a segment breaks the budget.
@@ -411,6 +444,14 @@ class RingSampler:
             uv = np.stack([topo.cross_uv_start[c], topo.cross_uv_end[c]])
             t = int(topo.seg_tri[c])
             moved = tuple((exact[q].copy(), float(gap[q]) + self.seg_len) for q in (i, k) if far[q])
+            if moved:
+                uv = self._seeds_toward_exact_ends(
+                    int(self.mesh.tri_face[t]),
+                    uv,
+                    np.array([0.0, seg_d[i]]),
+                    exact[i] if far[i] else None,
+                    exact[k] if far[k] else None,
+                )
             runs.append(
                 _Run(
                     int(self.mesh.tri_face[t]),

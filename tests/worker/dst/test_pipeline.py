@@ -281,7 +281,7 @@ def test_a_plane_just_below_the_top_of_a_tilted_rim_gets_its_loop(make_step, mon
         ("lying_cylinder", 3.0, lambda w: 2 * (20.0 + 2 * w) + 12.0),
     ],
 )
-@pytest.mark.parametrize("clearance", [0.005, 0.05])
+@pytest.mark.parametrize("clearance", [0.0015, 0.0024, 0.005, 0.05])
 def test_a_plane_just_below_a_horizontal_ridge_gets_straight_single_sides(
     make_step, kind, radius, perimeter, clearance
 ):
