@@ -79,7 +79,7 @@ def cut_mesh(vertices: np.ndarray, triangles: np.ndarray, heights: np.ndarray) -
     pts = v[lo, :2] + frac[..., None] * (v[hi, :2] - v[lo, :2])
     key = np.where(on, lo, nv + np.minimum(lo, hi) * nv + np.maximum(lo, hi))
     key = key * n_planes + plane[:, None]
-    keep = key[:, 0] != key[:, 1]
+    keep = (key[:, 0] != key[:, 1]) & ~_slit_segments(key)
     pts, key, plane = pts[keep], key[keep], plane[keep]
     # loops: connected components of the segment graph, per plane (keys include the plane)
     uniq, inv = np.unique(key.ravel(), return_inverse=True)
@@ -106,6 +106,23 @@ def cut_mesh(vertices: np.ndarray, triangles: np.ndarray, heights: np.ndarray) -
         vertices=node_xy,
         vertex_plane=node_plane,
     )
+
+
+def _slit_segments(key: np.ndarray) -> np.ndarray:
+    """Mask of cut segments that come in pairs between the same two points at one plane. A valley
+    edge lying exactly on a plane (both faces rising from it) is cut by the triangles on both sides,
+    a corner on the plane counting as below: a slit of zero width through the contour, which slicers
+    drop when they clean their polygons. Left in, it would join loops and count as contour. (The
+    cut's segment directions follow the triangles' corner order, not the surface's orientation, so
+    the pair is found without them.)"""
+    lo, hi = np.minimum(key[:, 0], key[:, 1]), np.maximum(key[:, 0], key[:, 1])
+    _, group, count = np.unique(np.stack([lo, hi], axis=1), axis=0, return_inverse=True, return_counts=True)
+    group = group.ravel()
+    slit = np.zeros(len(key), dtype=bool)
+    for g in np.flatnonzero(count > 1).tolist():
+        rows = np.flatnonzero(group == g)
+        slit[rows[: 2 * (len(rows) // 2)]] = True
+    return slit
 
 
 def crossed_planes(tri_z: np.ndarray, heights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

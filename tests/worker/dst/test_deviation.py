@@ -97,6 +97,52 @@ def test_vertices_on_a_plane_count_as_below():
     assert sorted(map(tuple, cut.vertices[cut.vertex_plane == 1].tolist())) == sorted(map(tuple, sq.tolist()))
 
 
+def _v_block():
+    """A 10 x 4 block whose top is a V: 2 high at x = 0 and 10, its valley line at x = 5, z = 1."""
+    import trimesh
+
+    v = np.array(
+        [[0, 0, 0], [10, 0, 0], [10, 4, 0], [0, 4, 0]]  # bottom
+        + [[0, y, 2] for y in (0, 4)]  # 4, 5
+        + [[5, y, 1] for y in (0, 4)]  # 6, 7: the valley
+        + [[10, y, 2] for y in (0, 4)],  # 8, 9
+        dtype=float,
+    )
+    t = [
+        (0, 2, 1),
+        (0, 3, 2),  # bottom
+        (0, 4, 5),
+        (0, 5, 3),
+        (1, 2, 9),
+        (1, 9, 8),  # ends x = 0 and x = 10
+        (0, 1, 8),
+        (0, 8, 6),
+        (0, 6, 4),
+        (3, 9, 2),
+        (3, 7, 9),
+        (3, 5, 7),  # sides y = 0 and y = 4
+        (4, 6, 7),
+        (4, 7, 5),
+        (6, 8, 9),
+        (6, 9, 7),  # the two slopes of the V
+    ]
+    mesh = trimesh.Trimesh(v, t, process=False)
+    trimesh.repair.fix_normals(mesh)
+    assert mesh.is_watertight and mesh.volume == pytest.approx(60.0)
+    return mesh.vertices, mesh.faces
+
+
+def test_a_valley_edge_on_a_plane_leaves_no_slit_in_the_cut():
+    """At z = 1 the block's section is the whole 10 x 4 rectangle; the valley line lying on the plane
+    is cut by the triangles on both its sides (corners on the plane count as below): a zero-width
+    slit that must not join or open the loop, nor count as contour."""
+    v, t = _v_block()
+    cut = cut_mesh(v, t, np.array([1.0]))
+    assert cut.loops.tolist() == [1] and cut.open_chains.tolist() == [0]
+    length = np.linalg.norm(cut.seg[:, 1] - cut.seg[:, 0], axis=1).sum()
+    assert length == pytest.approx(28.0, abs=1e-12)
+
+
 def test_empty_cut_and_missing_loop_are_reported():
     """Plane 0: the mesh has one of the two exact loops; plane 1: the mesh ends below it; plane 2:
     neither has a section."""

@@ -213,13 +213,14 @@ def test_reference_agrees_with_occt_section(corpus):
 def test_soapbox_rings_stay_inside_their_faces(corpus):
     """Regression: at z = 10.9 the plane is within micrometres of a cylinder face's apex; the coarse
     topology crosses the bounding circle edge 0.48 mm from its exact root, and Newton on the untrimmed
-    wall plane used to put ring points beyond the face (a 0.447 mm spike). The report measures it."""
+    wall plane used to put ring points beyond the face (a 0.447 mm spike). The report measures it.
+    (Since the seeds of such a run move with its exact ends, no point lands outside the face here any
+    more, so this file no longer exercises the outside-face guard itself.)"""
     path = corpus / "freeform" / "ec_soapbox-A.stp"
     params = SliceParams(layer_height=0.2)
     mesh = slice_step(path, params)
     report = build_report(mesh.part, params, file_name=str(path), dst=mesh, baselines=[])
     (dst,) = report.meshes
-    assert mesh.stats["outside_face_points"] > 0
     assert dst.layers[54].vertex_dev < 1e-3, dst.layers[54]
     assert dst.summary.max_vertex_dev < 2e-3
     assert dst.summary.max_chord_dev <= params.chord_error * 1.01
