@@ -458,7 +458,9 @@ def _build_report(
                 "to the nearest reference segment, exactly (k-d tree over points every "
                 f"{DENSE_SPACING_MM} mm along the segments, then point-to-segment distances); chord_dev is "
                 f"the larger of the two one-sided maxima over points every {DENSE_SPACING_MM} mm along the "
-                "cut and along the reference; meshes are cut with a vertex on a plane counting as below it"
+                "cut and along the reference; meshes are cut with a vertex on a plane counting as below it, "
+                "and a pair of cut segments between the same two points (the zero-width slit of a valley "
+                "edge lying on the plane) is dropped, as slicers do when they clean their polygons"
             ),
             seconds=round(ref_seconds, 4),
             loops=int(loops_exact.sum()),
