@@ -108,24 +108,14 @@ def _v_block():
         + [[10, y, 2] for y in (0, 4)],  # 8, 9
         dtype=float,
     )
+    # fmt: off
     t = [
-        (0, 2, 1),
-        (0, 3, 2),  # bottom
-        (0, 4, 5),
-        (0, 5, 3),
-        (1, 2, 9),
-        (1, 9, 8),  # ends x = 0 and x = 10
-        (0, 1, 8),
-        (0, 8, 6),
-        (0, 6, 4),
-        (3, 9, 2),
-        (3, 7, 9),
-        (3, 5, 7),  # sides y = 0 and y = 4
-        (4, 6, 7),
-        (4, 7, 5),
-        (6, 8, 9),
-        (6, 9, 7),  # the two slopes of the V
+        (0, 2, 1), (0, 3, 2),  # bottom
+        (0, 4, 5), (0, 5, 3), (1, 2, 9), (1, 9, 8),  # ends x = 0 and x = 10
+        (0, 1, 8), (0, 8, 6), (0, 6, 4), (3, 9, 2), (3, 7, 9), (3, 5, 7),  # sides y = 0 and y = 4
+        (4, 6, 7), (4, 7, 5), (6, 8, 9), (6, 9, 7),  # the two slopes of the V
     ]
+    # fmt: on
     mesh = trimesh.Trimesh(v, t, process=False)
     trimesh.repair.fix_normals(mesh)
     assert mesh.is_watertight and mesh.volume == pytest.approx(60.0)
