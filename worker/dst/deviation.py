@@ -116,12 +116,14 @@ def _slit_segments(key: np.ndarray) -> np.ndarray:
     cut's segment directions follow the triangles' corner order, not the surface's orientation, so
     the pair is found without them.)"""
     lo, hi = np.minimum(key[:, 0], key[:, 1]), np.maximum(key[:, 0], key[:, 1])
-    _, group, count = np.unique(np.stack([lo, hi], axis=1), axis=0, return_inverse=True, return_counts=True)
-    group = group.ravel()
+    order = np.lexsort((hi, lo))  # stable: equal segments keep their order
+    lo, hi = lo[order], hi[order]
+    start = np.concatenate([[True], (lo[1:] != lo[:-1]) | (hi[1:] != hi[:-1])])
+    first = np.flatnonzero(start)  # where each run of equal segments begins
+    run = np.cumsum(start) - 1
+    run_len = np.diff(np.append(first, len(key)))
     slit = np.zeros(len(key), dtype=bool)
-    for g in np.flatnonzero(count > 1).tolist():
-        rows = np.flatnonzero(group == g)
-        slit[rows[: 2 * (len(rows) // 2)]] = True
+    slit[order] = np.arange(len(key)) - first[run] < 2 * (run_len[run] // 2)  # whole pairs of each run
     return slit
 
 

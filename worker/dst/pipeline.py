@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import time
@@ -87,12 +88,13 @@ def slice_part(
     deflection = min(topo_deflection(diag), params.chord_error)
     t = time.perf_counter()
     meshes = []
+    topomesh = functools.partial(
+        build_topomesh, deflection=deflection, angular=C.TOPO_ANGULAR_RAD, merge_tol=C.MERGE_TOL_REL * diag
+    )
     for si, solid in enumerate(part.solids):
         report(f"meshing solid {si + 1}/{len(part.solids)}", 0.1 * si / len(part.solids))
         try:
-            mesh = build_topomesh(
-                solid, deflection=deflection, angular=C.TOPO_ANGULAR_RAD, merge_tol=C.MERGE_TOL_REL * diag
-            )
+            mesh = topomesh(solid)
         except UnmeshedFaceError as exc:
             # A face OCCT cannot mesh often has gaps or zero-length edges in its boundary: repaired
             # within the mesh's own deflection, the same solid is meshed again (and is the one the
@@ -102,9 +104,7 @@ def slice_part(
                 raise
             solid, change = healed
             try:
-                mesh = build_topomesh(
-                    solid, deflection=deflection, angular=C.TOPO_ANGULAR_RAD, merge_tol=C.MERGE_TOL_REL * diag
-                )
+                mesh = topomesh(solid)
             except TessellationError:
                 raise exc from None
             part.solids[si] = solid

@@ -267,7 +267,7 @@ class RingSampler:
             # The surface at a node's (u, v) can differ from the node (an edge point) by the file's
             # tolerance, so a plane that close to a node is not bracketed: Newton from the seed.
             self.stats.fallbacks += 1
-            p, _ = self._newton_from_crossing(t, a, b, (ua, va), (ub, vb), zc)
+            p = self._newton_from_crossing(t, a, b, (ua, va), (ub, vb), zc)
             if p is None:
                 raise TessellationError(
                     f"no exact point of face {face + 1} at z={zc:.4f} mm near a topology edge"
@@ -275,23 +275,21 @@ class RingSampler:
             x, y, _ = p
         return x, y, zc
 
-    def _newton_from_crossing(
-        self, t: int, a: int, b: int, uva, uvb, zc: float
-    ) -> tuple[np.ndarray | None, np.ndarray]:
+    def _newton_from_crossing(self, t: int, a: int, b: int, uva, uvb, zc: float) -> np.ndarray | None:
         """Newton (the smallest 3D move onto ``z = zc``) from where edge a-b of triangle ``t``
-        crosses the plane, interpolated in (u, v): the point and its (u, v), or None if it fails."""
+        crosses the plane, interpolated in (u, v): the point, or None if it fails."""
         mesh = self.mesh
         za, zb = mesh.xyz[a, 2], mesh.xyz[b, 2]
         frac = min(1.0, max(0.0, (zc - za) / (zb - za))) if zb != za else 0.5
         seed = np.asarray(uva, dtype=np.float64) + frac * np.subtract(uvb, uva)
-        pts, ok, uv = self._newton(
+        pts, ok, _ = self._newton(
             np.array([int(mesh.tri_face[t])]),
             seed[:1],
             seed[1:],
             zc,
             np.array([2.0 * self.tri_uv_scale[t]]),
         )
-        return (pts[0] if ok[0] else None), uv[0]
+        return pts[0] if ok[0] else None
 
     def _root_on_brep_edge(self, ei: int, a: int, b: int, zc: float) -> tuple[float, float, float]:
         ev = self.mesh.edges[ei]

@@ -243,11 +243,7 @@ def split_loose_vertices(solid: TopoDS_Solid) -> tuple[TopoDS_Solid, int, float]
                 builder.UpdateVertex(vertex, param, copy, BRep_Tool.Tolerance_s(vertex))
         reshape.Replace(edge, copy)
     healed = reshape.Apply(solid)
-    if (
-        healed.ShapeType() != TopAbs_SOLID
-        or not BRepCheck_Analyzer(healed).IsValid()
-        or not _is_closed(healed)
-    ):
+    if not _valid_closed_solid(healed):
         return None
     return TopoDS.Solid(healed), n_split, widest
 
@@ -267,17 +263,18 @@ def heal_wires(solid: TopoDS_Solid, precision: float) -> tuple[TopoDS_Solid, flo
     if not (gaps or small):
         return None
     healed = fix.Shape()
-    if (
-        healed.ShapeType() != TopAbs_SOLID
-        or not BRepCheck_Analyzer(healed).IsValid()
-        or not _is_closed(healed)
-    ):
+    if not _valid_closed_solid(healed):
         return None
     before = solid_volume(solid)
     change = abs(solid_volume(healed) - before) / abs(before)
     if change > HEAL_VOLUME_REL:
         return None
     return TopoDS.Solid(healed), change
+
+
+def _valid_closed_solid(shape: TopoDS_Shape) -> bool:
+    """A repair is kept only if its result is one solid that OCCT finds valid and that is closed."""
+    return shape.ShapeType() == TopAbs_SOLID and BRepCheck_Analyzer(shape).IsValid() and _is_closed(shape)
 
 
 def _file_units(reader: STEPControl_Reader) -> list[str]:

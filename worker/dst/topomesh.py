@@ -336,18 +336,14 @@ def _stray_triangles(pts: np.ndarray, tris: np.ndarray, polygons: list[np.ndarra
     if not len(border):
         return np.zeros(len(tris), dtype=bool)
     n = len(pts)
-    bounded = set()
-    for ids in polygons:
-        lo, hi = np.minimum(ids[:-1], ids[1:]), np.maximum(ids[:-1], ids[1:])
-        bounded.update((lo * n + hi).tolist())
-    lo, hi = border.min(axis=1), border.max(axis=1)
-    loose = ~np.isin(lo * n + hi, np.fromiter(bounded, dtype=np.int64, count=len(bounded)))
+    bounded = [np.minimum(ids[:-1], ids[1:]) * n + np.maximum(ids[:-1], ids[1:]) for ids in polygons]
+    border_key = border.min(axis=1) * n + border.max(axis=1)  # undirected
+    loose = ~np.isin(border_key, np.concatenate(bounded)) if bounded else np.ones(len(border), dtype=bool)
     loose &= np.linalg.norm(pts[border[:, 0]] - pts[border[:, 1]], axis=1) > tol
     if not loose.any():
         return np.zeros(len(tris), dtype=bool)
-    bad = set((lo[loose] * n + hi[loose]).tolist())
     e = np.sort(np.stack([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]], axis=1), axis=2)
-    return np.isin(e[..., 0] * n + e[..., 1], np.fromiter(bad, dtype=np.int64, count=len(bad))).any(axis=1)
+    return np.isin(e[..., 0] * n + e[..., 1], border_key[loose]).any(axis=1)
 
 
 def _hole_loops(tris: np.ndarray, n_nodes: int) -> list[list[int]] | None:
@@ -391,10 +387,10 @@ def _doubled_triangles(tris: np.ndarray) -> np.ndarray:
     first = np.argmin(tris, axis=1)
     rows = np.arange(len(tris))[:, None]
     canon = tris[rows, (first[:, None] + np.arange(3)) % 3]  # smallest node first, same turn
-    n = int(tris.max()) + 1
-    key = (canon[:, 0] * n + canon[:, 1]) * n + canon[:, 2]
-    rkey = (canon[:, 0] * n + canon[:, 2]) * n + canon[:, 1]
-    return np.isin(key, rkey)
+    # rows matched whole (three node ids packed into one integer overflow beyond ~2 million nodes)
+    _, inv = np.unique(np.concatenate([canon, canon[:, [0, 2, 1]]]), axis=0, return_inverse=True)
+    inv = inv.ravel()
+    return np.isin(inv[: len(tris)], inv[len(tris) :])
 
 
 def _repeated_edge_triangles(tris: np.ndarray, n_nodes: int, keep: np.ndarray) -> np.ndarray:
@@ -461,16 +457,21 @@ def _patch_holes(xyz, tris, tri_uv, tri_face, stray_mask, faces, edge_faces, edg
     loops = _hole_loops(t2, len(xyz))
     if loops is None or edge_defects(t2, len(xyz))[1]:
         return unpatched
-    holder = {}  # directed open edge -> face of the triangle holding it
-    for col in range(3):
-        a, b = t2[:, col], t2[:, (col + 1) % 3]
-        holder.update(zip(zip(a.tolist(), b.tolist(), strict=True), f2.tolist(), strict=True))
+    # directed open edge -> face of the triangle holding it
+    n = len(xyz)
+    key = np.stack([t2[:, [0, 1]], t2[:, [1, 2]], t2[:, [2, 0]]], axis=1) @ np.array([n, 1])  # (m, 3)
+    is_open = np.isin(
+        key, [a * n + b for loop in loops for a, b in zip(loop, loop[1:] + loop[:1], strict=True)]
+    )
+    holder = dict(
+        zip(key[is_open].tolist(), np.broadcast_to(f2[:, None], key.shape)[is_open].tolist(), strict=True)
+    )
     new_t, new_uv, new_f, patched = [], [], [], []
     for loop in loops:
         votes: dict[int, int] = {}
         for a, b in zip(loop, loop[1:] + loop[:1], strict=True):
             brep_edge = edge_of.get((a, b) if a < b else (b, a))
-            inside = holder[(a, b)]
+            inside = holder[a * n + b]
             if brep_edge is None:  # an edge inside a face: the hole is in that face
                 candidates = {inside}
             else:  # on a B-rep edge: the hole is in the face across it

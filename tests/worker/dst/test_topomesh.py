@@ -35,7 +35,7 @@ def _distance_to_face(p, face) -> float:
 def _holed_face_mesh(monkeypatch, solid, radius: float):
     """Have BRepMesh's mesh of the solid's largest face lose its triangles whose centroids lie within
     ``radius`` of the face's middle node, as BRepMesh does where it cannot place part of a face.
-    Returns (face index, centre of the hole)."""
+    Returns the face's index."""
     mesh = T.build_topomesh(solid, deflection=DEFLECTION, angular=0.35, merge_tol=1e-7)
     counts = np.bincount(mesh.tri_face)
     target = int(counts.argmax())
@@ -51,7 +51,7 @@ def _holed_face_mesh(monkeypatch, solid, radius: float):
         return pts, uvs, t
 
     monkeypatch.setattr(T, "_face_mesh", holed)
-    return target, centre
+    return target
 
 
 def _assert_closed_topology_mesh(mesh) -> None:
@@ -62,7 +62,7 @@ def _assert_closed_topology_mesh(mesh) -> None:
 
 def test_a_hole_left_in_a_flat_face_is_patched_on_that_face(monkeypatch):
     solid = _solid("step_box")
-    target, _ = _holed_face_mesh(monkeypatch, solid, radius=4.0)
+    target = _holed_face_mesh(monkeypatch, solid, radius=4.0)
     mesh = T.build_topomesh(solid, deflection=DEFLECTION, angular=0.35, merge_tol=1e-7)
     _assert_closed_topology_mesh(mesh)
     assert [f for f, _, _ in mesh.patched_faces] == [target]
@@ -77,7 +77,7 @@ def test_a_hole_left_in_a_flat_face_is_patched_on_that_face(monkeypatch):
 
 def test_a_small_hole_in_a_curved_face_is_patched_within_the_deflection(monkeypatch):
     solid = _solid("hemisphere", radius=20.0)
-    target, _ = _holed_face_mesh(monkeypatch, solid, radius=0.2)  # a few small triangles missing
+    target = _holed_face_mesh(monkeypatch, solid, radius=0.2)  # a few small triangles missing
     mesh = T.build_topomesh(solid, deflection=DEFLECTION, angular=0.35, merge_tol=1e-7)
     _assert_closed_topology_mesh(mesh)
     ((face, n_tris, dist),) = mesh.patched_faces
