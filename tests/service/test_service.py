@@ -250,7 +250,7 @@ def test_remote_cli_round_trip(service_factory, parts, tmp_path):
     )
     assert r.returncode == 0, r.stderr
     assert trimesh.load(out, file_type="3mf", force="mesh").is_watertight
-    assert json.loads((tmp_path / "r.json").read_text())["version"] == "1.0"
+    assert json.loads((tmp_path / "r.json").read_text())["version"] == "1.1"
 
 
 def test_artifacts_on_s3(service_factory, parts, s3_bucket, tmp_path):

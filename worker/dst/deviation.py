@@ -153,6 +153,19 @@ def offset_cut(cut: MeshCut, first: int, n_planes: int) -> MeshCut:
     )
 
 
+def select_planes(cut: MeshCut, mask: np.ndarray) -> MeshCut:
+    """The part of ``cut`` at the planes where ``mask`` is true (the others empty)."""
+    keep_seg, keep_vert = mask[cut.seg_plane], mask[cut.vertex_plane]
+    return MeshCut(
+        seg=cut.seg[keep_seg],
+        seg_plane=cut.seg_plane[keep_seg],
+        loops=np.where(mask, cut.loops, 0),
+        open_chains=np.where(mask, cut.open_chains, 0),
+        vertices=cut.vertices[keep_vert],
+        vertex_plane=cut.vertex_plane[keep_vert],
+    )
+
+
 def _empty_cut(n_planes: int) -> MeshCut:
     z = np.zeros(n_planes, dtype=np.int64)
     return MeshCut(

@@ -213,7 +213,9 @@ def slice_part(
         warnings.append(
             f"a flat face lies on slicing plane {j} (z = {planes.z[j]:.4f} mm): the exact section there is an "
             "area, and slicers disagree on it (Cura keeps the outline above the face, PrusaSlicer the one "
-            "below); the DST mesh gives that plane one closed outline"
+            "below); the DST mesh gives that plane one outline, the one just below the face (PrusaSlicer's), "
+            "and joins it straight to the next plane's ring: what a slicer sees at the planes is exact, the "
+            "volume between these two planes is not"
         )
     stats["flat_planes"] = sorted(flat_planes)
     stats["triangles"] = len(triangles)

@@ -12,7 +12,7 @@ build's coarser topology missed still shows up here. ``occt_sections`` computes 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from OCP.BRepAdaptor import BRepAdaptor_Curve
@@ -32,9 +32,10 @@ from worker.dst.sections import cut_topology
 from worker.dst.step_io import LoadedPart
 from worker.dst.topomesh import build_topomesh
 
-# The exact section of a plane through a flat face is taken just above the plane: twice the larger of
-# the on-plane snapping tolerance and the plane's float32 half-step (so the face is no longer "on" the
-# lifted plane). A surface standing on the face moves by the lift times its slope's cotangent there.
+# The exact sections of a plane through a flat face are taken just above and just below the face: the
+# plane moved by twice the larger of the on-plane snapping tolerance and the plane's float32 half-step
+# (so the face is no longer "on" it). A surface meeting the face moves by that times its slope's
+# cotangent there.
 FLAT_FACE_LIFT_FACTOR = 2.0
 
 
@@ -45,6 +46,8 @@ class ExactSections:
     heights : (P,) float64   plane heights above the lowest point, mm
     loops : per plane, a list of (k, 2) float64 closed polylines in (x, y), mm (first point not repeated)
     corners : per plane and loop, (k,) bool: the section changes face or meets a B-rep edge there
+    flat_planes : planes through a flat face: there ``loops`` is the section just above the face and
+        ``below_loops[j]`` (``below_corners[j]``) the one just below it
     zmin, zmax : the part's exact lowest and highest z in its own coordinates, mm
     chord : largest distance between the exact curve and the polylines, mm
     method : how the points were computed (for the report)
@@ -58,6 +61,8 @@ class ExactSections:
     chord: float
     method: str
     flat_planes: list[int]
+    below_loops: dict[int, list[np.ndarray]]
+    below_corners: dict[int, list[np.ndarray]]
 
     def perimeters(self) -> np.ndarray:
         return np.array([sum(closed_length(p) for p in ls) for ls in self.loops])
@@ -83,50 +88,77 @@ def exact_sections(
     world = zmin + np.asarray(heights, dtype=np.float64)
     for mesh in meshes:
         snap_local_extremes(mesh, world)
-    loops: list[list[np.ndarray]] = [[] for _ in range(len(world))]
-    corners: list[list[np.ndarray]] = [[] for _ in range(len(world))]
+    n_planes = len(world)
     # as in the DST build: a node within half a float32 step of a plane is on it (what a slicer sees)
     noise = 0.5 * np.spacing(np.abs(np.asarray(heights, dtype=np.float32))).astype(np.float64)
-    topos, flat = [], set()
-    for mesh in meshes:
-        topo = cut_topology(mesh, world, on_plane_tol=C.ON_PLANE_TOL_MM, noise_tol=noise)
-        if topo.flat_planes:
-            # A plane through a flat face of this solid: measure the solid's section just above it, as
-            # a mesh cut is measured (a vertex on a plane counts as below it), i.e. the outline of what
-            # stands on the face. Other solids keep the plane where it is.
-            flat.update(topo.flat_planes)
-            lifted = world.copy()
-            j = np.asarray(topo.flat_planes)
-            lifted[j] += FLAT_FACE_LIFT_FACTOR * np.maximum(C.ON_PLANE_TOL_MM, noise[j])
-            topo = cut_topology(mesh, lifted, on_plane_tol=C.ON_PLANE_TOL_MM, noise_tol=noise)
-        topos.append(topo)
-    for mesh, topo in zip(meshes, topos, strict=True):
-        pool = VertexPool()
-        sampler = RingSampler(mesh, topo, pool, segment_length=segment_length, chord_error=chord)
-        annulus = topo.comp_is_annulus
-        free = annulus[topo.loop_below] & annulus[topo.loop_above]
-        rings = sampler.free_loops(np.flatnonzero(free).tolist())
-        for li in np.flatnonzero(~free).tolist():
-            rings[li] = sampler.pinned_loop(li)
-        xyz = pool.xyz
-        for li, ids in rings.items():
-            j = int(topo.loops[li][0])
-            loops[j].append(xyz[ids, :2].copy())
-            corners[j].append(np.array([v in sampler.corner_vids for v in ids], dtype=bool))
+    # per solid: (loop, corner mask) pairs at each plane, and just below its flat faces
+    per_solid = [_solid_sections(mesh, world, noise, chord, segment_length) for mesh in meshes]
+    flat = sorted({j for _, below in per_solid for j in below})
+    # just below a flat face on plane j: that solid's section there, every other solid's at j
+    pairs_below = {j: [p for on, below in per_solid for p in below.get(j, on[j])] for j in flat}
+    pairs = [[p for on, _ in per_solid for p in on[j]] for j in range(n_planes)]
     return ExactSections(
         heights=np.asarray(heights, dtype=np.float64),
-        loops=loops,
-        corners=corners,
+        loops=[[lp for lp, _ in ps] for ps in pairs],
+        corners=[[c for _, c in ps] for ps in pairs],
         zmin=zmin,
         zmax=zmax,
         chord=chord,
-        flat_planes=sorted(flat),
+        flat_planes=flat,
+        below_loops={j: [lp for lp, _ in ps] for j, ps in pairs_below.items()},
+        below_corners={j: [c for _, c in ps] for j, ps in pairs_below.items()},
         method=(
             "points solved exactly on the B-rep faces and edges (Newton / Brent, |z - plane| < "
             f"{C.LEVEL_TOL_MM:g} mm) and joined into closed polylines, sampled until each span's midpoint "
-            f"lies within {chord:g} mm of its chord"
+            f"lies within {chord:g} mm of its chord; at a plane through a flat face, the sections just above "
+            f"and just below the face (the plane moved by {FLAT_FACE_LIFT_FACTOR:g}x the larger of "
+            f"{C.ON_PLANE_TOL_MM:g} mm and its float32 half-step)"
         ),
     )
+
+
+def _solid_sections(
+    mesh, world: np.ndarray, noise: np.ndarray, chord: float, segment_length: float
+) -> tuple[list[list[tuple[np.ndarray, np.ndarray]]], dict[int, list[tuple[np.ndarray, np.ndarray]]]]:
+    """One solid's dense sections: (loop, corner mask) pairs per plane, and per plane through a flat
+    face of the solid, the pairs just below the face (the per-plane ones are then just above it)."""
+    n_planes = len(world)
+    topo = cut_topology(mesh, world, on_plane_tol=C.ON_PLANE_TOL_MM, noise_tol=noise)
+    owner, lowered = np.arange(n_planes), np.zeros(n_planes, dtype=bool)
+    flat = topo.flat_planes
+    if flat:
+        # The solid's section at a plane through its flat face is an area: take the sections just
+        # above and just below the face instead (the outlines of what stands on it and of what it
+        # caps: the two slicer conventions), in one cut with the two heights in place of the plane.
+        j = np.asarray(flat)
+        lift = FLAT_FACE_LIFT_FACTOR * np.maximum(C.ON_PLANE_TOL_MM, noise[j])
+        ext = np.concatenate([world, world[j] - lift])
+        ext[j] += lift
+        order = np.argsort(ext, kind="stable")
+        owner = np.concatenate([owner, j])[order]
+        lowered = np.concatenate([lowered, np.ones(len(j), dtype=bool)])[order]
+        ext_noise = np.concatenate([noise, noise[j]])[order]
+        # the nodes as placed on the planes by the first cut: a flat face's nodes exactly on its
+        # plane (those off it by the file's tolerance too), so the moved planes miss the whole face
+        placed = replace(mesh, xyz=np.column_stack([mesh.xyz[:, :2], topo.z]))
+        topo = cut_topology(placed, ext[order], on_plane_tol=C.ON_PLANE_TOL_MM, noise_tol=ext_noise)
+        mesh = placed
+    pool = VertexPool()
+    sampler = RingSampler(mesh, topo, pool, segment_length=segment_length, chord_error=chord)
+    annulus = topo.comp_is_annulus
+    free = annulus[topo.loop_below] & annulus[topo.loop_above]
+    rings = sampler.free_loops(np.flatnonzero(free).tolist())
+    for li in np.flatnonzero(~free).tolist():
+        rings[li] = sampler.pinned_loop(li)
+    on_plane: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in range(n_planes)]
+    below: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {int(k): [] for k in flat}
+    xyz = pool.xyz
+    for li in sorted(rings):
+        ids = rings[li]
+        e = int(topo.loops[li][0])
+        pair = (xyz[ids, :2].copy(), np.array([v in sampler.corner_vids for v in ids], dtype=bool))
+        (below[int(owner[e])] if lowered[e] else on_plane[int(owner[e])]).append(pair)
+    return on_plane, below
 
 
 def occt_sections(

@@ -38,6 +38,7 @@ from worker.dst.deviation import (
     loop_successors,
     loops_to_segments,
     offset_cut,
+    select_planes,
     span_curvatures,
 )
 from worker.dst.errors import DstError, ResourceLimitExceeded, TessellationError
@@ -49,7 +50,7 @@ from worker.dst.planes import plan_planes
 from worker.dst.reference import closed_length, exact_sections
 from worker.dst.step_io import LoadedPart
 
-REPORT_VERSION = "1.0"
+REPORT_VERSION = "1.1"  # 1.1: layers carry flat_side (flat faces on planes measured on both sides)
 Progress = Callable[[str, float], None]
 
 
@@ -201,6 +202,15 @@ class Layer(BaseModel):
     loops_exact: int = Field(ge=0, description="Loops of the exact section.")
     open_chains: int = Field(0, ge=0, description="Cut chains that do not close (holes in the mesh).")
     vertices: int = Field(ge=0, description="Vertices of the cut.")
+    flat_side: Literal["above", "below"] | None = Field(
+        None,
+        description=(
+            "At a plane through a flat face (whose exact section is an area): which exact outline the "
+            "cut was measured against, the one just above the face or just below it, whichever the cut "
+            "matches better (slicers differ: Cura keeps the outline above, PrusaSlicer the one below). "
+            "None at other planes."
+        ),
+    )
 
 
 class MeshReport(BaseModel):
@@ -256,7 +266,7 @@ class Report(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    version: Literal["1.0"] = REPORT_VERSION
+    version: Literal["1.1"] = REPORT_VERSION
     input: InputInfo
     params: SliceParams
     planes: list[float] = Field(description="Plane heights above the lowest point, mm, one per layer.")
@@ -337,9 +347,10 @@ def _build_report(
     curv = span_curvatures(ref.loops, chord=chord, corners=ref.corners)
     ref_set = SegmentSet(ref_seg, ref_plane, curv=curv, nxt=loop_successors(ref.loops), chord=chord)
     ref_perimeter = np.bincount(ref_plane, weights=curve_lengths(ref_seg, curv), minlength=len(heights))
-    ref_seconds = time.perf_counter() - t
     n_planes = len(heights)
     loops_exact = np.array([len(ls) for ls in ref.loops], dtype=np.int64)
+    below = _below_reference(ref, chord) if ref.flat_planes else None
+    ref_seconds = time.perf_counter() - t
 
     todo: list[MeshInput] = []
     if dst is not None:
@@ -373,7 +384,7 @@ def _build_report(
         for _, m, j0, j1 in sorted(jobs, key=lambda job: job[0], reverse=True):
             v, tr = placed[id(m)]
             task = tasks.submit(
-                _measure_planes, v, tr, heights, j0, j1, ref_set, ref_perimeter, n_planes, workers
+                _measure_planes, v, tr, heights, j0, j1, ref_set, ref_perimeter, below, n_planes, workers
             )
             measuring.setdefault(id(m), []).append((j0, task))
 
@@ -393,6 +404,7 @@ def _build_report(
             [_measured(t) for _, t in sorted(measuring[id(m)], key=lambda r: r[0])],
             planes_z,
             loops_exact,
+            below,
         )
         for m in todo
     ]
@@ -418,9 +430,10 @@ def _build_report(
             warnings.append(msg + ": the exact section there is an area, and slicers disagree on it")
     if ref.flat_planes:
         warnings.append(
-            f"the report measures plane(s) {', '.join(map(str, ref.flat_planes))} just above the flat face "
-            f"(the exact section a few micrometres above the plane; every mesh cut with vertices on the "
-            "plane counting as below it), which is what a slicer keeping the outline above the face sees"
+            f"the report measures plane(s) {', '.join(map(str, ref.flat_planes))} against the exact outlines "
+            "just above and just below the flat face (a few micrometres from the plane), each mesh against "
+            "the one its cut matches better (the layer's flat_side says which): a mesh whose cut keeps "
+            "either outline is not counted wrong there"
         )
     small = [(j, closed_length(p)) for j, ls in enumerate(ref.loops) for p in ls]
     small = [(j, length) for j, length in small if length < CURA_MIN_CIRCUMFERENCE_MM]
@@ -477,6 +490,39 @@ class _Measured:
 
     metrics: LayerMetrics
     mesh_wide: tuple[int, int, float] | None  # open edges, non-manifold edges, volume
+    side: np.ndarray  # per plane: 0, or at a flat-face plane +1 (measured above the face) / -1 (below)
+
+
+@dataclass
+class _BelowReference:
+    """The exact sections just below the flat faces lying on planes (as plane-indexed reference
+    segments; ``ExactSections.loops`` holds the ones just above)."""
+
+    flat: np.ndarray  # (P,) bool: a flat face lies on the plane
+    segments: SegmentSet
+    perimeter: np.ndarray  # (P,)
+    loops: np.ndarray  # (P,) loops just below the face (0 elsewhere)
+
+
+def _below_reference(ref, chord: float) -> _BelowReference:
+    n = len(ref.heights)
+    loops = [ref.below_loops.get(j, []) for j in range(n)]
+    corners = [ref.below_corners.get(j, []) for j in range(n)]
+    seg, plane = loops_to_segments(loops)
+    curv = span_curvatures(loops, chord=chord, corners=corners)
+    flat = np.zeros(n, dtype=bool)
+    flat[ref.flat_planes] = True
+    return _BelowReference(
+        flat=flat,
+        segments=SegmentSet(seg, plane, curv=curv, nxt=loop_successors(loops), chord=chord),
+        perimeter=np.bincount(plane, weights=curve_lengths(seg, curv), minlength=n),
+        loops=np.array([len(ls) for ls in loops], dtype=np.int64),
+    )
+
+
+def _badness(met: LayerMetrics) -> np.ndarray:
+    """Per plane, how far a cut is from a reference: chord_dev, infinite where one side is empty."""
+    return np.where(np.isnan(met.chord_dev), np.inf, met.chord_dev)
 
 
 def _on_bed(m: MeshInput) -> tuple[np.ndarray, np.ndarray]:
@@ -496,23 +542,42 @@ def _measure_planes(
     j1: int,
     ref_set: SegmentSet,
     ref_perimeter: np.ndarray,
+    below: _BelowReference | None,
     n_planes: int,
     workers: int,
 ) -> _Measured:
     """Cut a mesh placed by ``_on_bed`` at planes j0 .. j1 - 1 and measure the cuts (pure numpy:
-    runs in a forked helper)."""
+    runs in a forked helper). At a plane through a flat face the cut is measured against the exact
+    outlines above and below the face, and keeps the better match."""
     cut = offset_cut(cut_mesh(v, tr, heights[j0:j1]), j0, n_planes)
     met = compare(cut, ref_set, ref_perimeter, n_planes, workers=workers)
+    side = np.zeros(n_planes, dtype=np.int8)
+    if below is not None:
+        flat = np.zeros(n_planes, dtype=bool)
+        flat[j0:j1] = below.flat[j0:j1]
+        if flat.any():
+            low = compare(
+                select_planes(cut, flat), below.segments, below.perimeter, n_planes, workers=workers
+            )
+            take = flat & (_badness(low) < _badness(met))
+            side[flat] = 1
+            side[take] = -1
+            for k in LayerMetrics.__dataclass_fields__:
+                getattr(met, k)[take] = getattr(low, k)[take]
     part = LayerMetrics(**{k: getattr(met, k)[j0:j1] for k in LayerMetrics.__dataclass_fields__})
     mesh_wide = None
     if j0 == 0:
         open_edges, nonmanifold = edge_defects(tr, len(v)) if len(tr) else (0, 0)
         mesh_wide = (open_edges, nonmanifold, signed_volume(v, tr) if len(tr) else 0.0)
-    return _Measured(part, mesh_wide)
+    return _Measured(part, mesh_wide, side[j0:j1])
 
 
 def _mesh_report(
-    m: MeshInput, parts: list[_Measured], planes_z: np.ndarray, loops_exact: np.ndarray
+    m: MeshInput,
+    parts: list[_Measured],
+    planes_z: np.ndarray,
+    loops_exact: np.ndarray,
+    below: _BelowReference | None,
 ) -> MeshReport:
     """The mesh's report from its measured plane ranges (in plane order, covering every plane);
     ``volume_rel_err`` is left to the caller, which has the exact volume."""
@@ -525,6 +590,9 @@ def _mesh_report(
     n_planes = len(planes_z)
     assert len(met.vertex_dev) == n_planes, "the plane ranges must cover every plane once"
     open_edges, nonmanifold, volume = next(p.mesh_wide for p in parts if p.mesh_wide is not None)
+    side = np.concatenate([p.side for p in parts])
+    if below is not None:  # the exact loops of the side each flat-face plane was measured against
+        loops_exact = np.where(side < 0, below.loops, loops_exact)
     n_tri = len(np.asarray(m.triangles).reshape(-1, 3))
     layers = [
         Layer(
@@ -537,6 +605,7 @@ def _mesh_report(
             loops_exact=int(loops_exact[j]),
             open_chains=int(met.open_chains[j]),
             vertices=int(met.vertices[j]),
+            flat_side=_SIDES[int(side[j])],
         )
         for j in range(n_planes)
     ]
@@ -591,6 +660,9 @@ def _plane_ranges(cost: np.ndarray, chunk: float) -> list[tuple[int, int]]:
     cuts = np.searchsorted(cum, cum[-1] * np.arange(1, parts) / parts)
     edges = np.unique(np.concatenate([[0], np.clip(cuts, 1, n - 1), [n]]))
     return list(zip(edges[:-1].tolist(), edges[1:].tolist(), strict=True))
+
+
+_SIDES = {0: None, 1: "above", -1: "below"}
 
 
 def _num(x: float) -> float | None:

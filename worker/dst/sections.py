@@ -339,6 +339,7 @@ def snap_to_planes(
     tri_near = near[mesh.tris].all(axis=1) & (j[mesh.tris] == j[mesh.tris[:, :1]]).all(axis=1)
     face_all = np.ones(len(mesh.faces), dtype=bool)
     np.logical_and.at(face_all, mesh.tri_face, tri_near)
+    _flat_within_tolerance(mesh, planes, j, near, tri_near, face_all, tol)
     snap[mesh.tris[face_all[mesh.tri_face]].ravel()] = True
     flat_planes = sorted(set(j[mesh.tris[face_all[mesh.tri_face], 0]].tolist()))
 
@@ -368,6 +369,37 @@ def snap_to_planes(
             snap[b] = True
     z[snap] = planes[j[snap]]
     return z, flat_planes, snap
+
+
+def _flat_within_tolerance(
+    mesh: TopoMesh,
+    planes: np.ndarray,
+    j: np.ndarray,
+    near: np.ndarray,
+    tri_near: np.ndarray,
+    face_all: np.ndarray,
+    tol: float,
+) -> None:
+    """Mark as flat (in ``face_all``) the faces lying on a plane whose mesh has nodes off it by the
+    file's tolerance: a B-rep vertex a few hundredths of a micrometre below a horizontal plane face
+    still belongs to the face. Such a face counts as flat when its *surface* is within ``tol`` of the
+    plane at every off node's (u, v) and the off nodes are within the mesh's deflection of it.
+    (Left out, the face's triangles would reach below the plane and a plane moved just below the
+    face would cut a flat face nowhere its surface is.)"""
+    partly = np.zeros(len(face_all), dtype=bool)
+    np.logical_or.at(partly, mesh.tri_face, tri_near)
+    partly &= ~face_all
+    for f in np.flatnonzero(partly).tolist():
+        tris = np.flatnonzero(mesh.tri_face == f)
+        jp = j[mesh.tris[tris[tri_near[tris]][0], 0]]
+        zp = planes[jp]
+        nodes, uv = mesh.tris[tris].ravel(), mesh.tri_uv[tris].reshape(-1, 2)
+        off = ~(near[nodes] & (j[nodes] == jp))
+        if (j[nodes[off]] != jp).any() or np.abs(mesh.xyz[nodes[off], 2] - zp).max() > mesh.deflection:
+            continue
+        face = mesh.faces[f]
+        if all(abs(face.point(u, v)[2] - zp) <= tol for u, v in np.unique(uv[off], axis=0).tolist()):
+            face_all[f] = True
 
 
 def _walk_loops(succ: np.ndarray, cross_plane: np.ndarray) -> list[tuple[int, np.ndarray]]:

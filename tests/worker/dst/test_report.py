@@ -20,7 +20,7 @@ from tests.worker.dst.meshcheck import occt_section_points
 from worker.dst.baselines import BASELINE_PRESETS, parse_baselines
 from worker.dst.params import SliceParams
 from worker.dst.pipeline import slice_step
-from worker.dst.reference import exact_sections, occt_sections
+from worker.dst.reference import closed_length, exact_sections, occt_sections
 from worker.dst.report import MeshInput, Report, build_report
 from worker.dst.step_io import read_step, solid_volume
 
@@ -118,7 +118,7 @@ def test_report_json_round_trips(hemisphere):
     data = json.loads(report.model_dump_json())
     again = Report.model_validate(data)
     assert again == report
-    assert data["version"] == "1.0"
+    assert data["version"] == "1.1"
     assert len(data["meshes"][0]["layers"]) == len(data["planes"])
     assert data["meshes"][0]["stl_bytes"] == 84 + 50 * data["meshes"][0]["triangles"]
 
@@ -140,6 +140,91 @@ def test_missing_layers_are_reported_not_crashed(hemisphere, tmp_path):
     assert upper and all(layer.vertex_dev is None and layer.perimeter_err == 1.0 for layer in upper)
     assert m.summary.layers_missing == len(upper)
     assert any("box:" in w and "has none" in w for w in report.warnings)
+
+
+def _stepped(wide_below: bool):
+    """A 20 x 20 block and a 10 x 10 block meeting in a flat face at z = 4.1 (middle-mode plane 20
+    for h = 0.2): the wide block below (a step up) or above (an overhang)."""
+    import build123d as bd
+
+    align = (bd.Align.CENTER, bd.Align.CENTER, bd.Align.MIN)
+    lower, upper = (20, 10) if wide_below else (10, 20)
+    return bd.Box(lower, lower, 4.1, align=align) + bd.Pos(0, 0, 4.1) * bd.Box(upper, upper, 3, align=align)
+
+
+@pytest.mark.parametrize("wide_below", [True, False], ids=["step", "overhang"])
+def test_flat_face_plane_is_measured_against_the_outline_each_cut_keeps(tmp_path, wide_below):
+    """A plane through a flat face has two exact outlines (just above and just below the face); each
+    mesh is measured against the one its cut gives. DST keeps the outline below, OCCT's mesh cut
+    there (a vertex on the plane counting as below) the one above: both exact, neither counted
+    off by the blocks' half-width difference (7.07 mm at the corners)."""
+    from tests.conftest import write_step
+
+    path = write_step(_stepped(wide_below), tmp_path / "stepped.step")
+    params = SliceParams(layer_height=0.2)
+    mesh = slice_step(path, params)
+    assert mesh.stats["flat_planes"] == [20]
+    # the reference's two outlines at plane 20: squares of the upper and of the lower block
+    ref = exact_sections(mesh.part, mesh.planes.section_z, chord=1e-3, segment_length=2.0, deflection=0.01)
+    assert ref.flat_planes == [20]
+    above, below = (10.0, 20.0) if wide_below else (20.0, 10.0)
+    assert ref.perimeters()[20] == pytest.approx(4 * above, abs=1e-9)
+    assert sum(map(closed_length, ref.below_loops[20])) == pytest.approx(4 * below, abs=1e-9)
+    assert ref.perimeters()[19] == pytest.approx(4 * below) and ref.perimeters()[21] == pytest.approx(
+        4 * above
+    )
+
+    report = build_report(
+        mesh.part, params, file_name=str(path), dst=mesh, baselines=["occt_fast"], processes=1
+    )
+    dst, occt = report.meshes
+    assert [layer.flat_side for layer in dst.layers if layer.flat_side] == ["below"]
+    assert [layer.flat_side for layer in occt.layers if layer.flat_side] == ["above"]
+    for m in (dst, occt):
+        assert m.summary.max_vertex_dev < 1e-5 and m.summary.max_chord_dev < 1e-5, m.name
+        assert m.summary.max_perimeter_err < 1e-9 and m.summary.layers_loop_mismatch == 0
+    # DST's ring at plane 20 is the lower block's square: against the upper one it is off by the
+    # corners' distance, which the report used to count
+    ring = mesh.vertices[mesh.vertex_plane == 20, :2]
+    assert np.abs(ring).max() == pytest.approx(below / 2, abs=1e-6)
+    assert any(
+        "plane(s) 20 against the exact outlines just above and just below" in w for w in report.warnings
+    )
+
+
+def test_flat_face_with_a_vertex_off_its_plane_by_the_file_tolerance(tmp_path, monkeypatch):
+    """A B-rep vertex a few hundredths of a micrometre below a horizontal plane face (as on
+    trj7_b1-ec-214) still belongs to the flat face: it is put on the plane with the face, so the
+    sections just below and above the face are found (a plane moved below the face used to cut the
+    face's triangles there, where its surface has no point: a tessellation error)."""
+    from tests.conftest import write_step
+    from worker.dst import reference
+
+    path = write_step(_stepped(True), tmp_path / "stepped.step")
+    part = read_step(path)
+    build = reference._topomesh
+    moved = []
+
+    def off_by_tolerance(solid, deflection, diag):
+        mesh = build(solid, deflection, diag)
+        z = mesh.xyz[:, 2]
+        zmin = z.min()
+        # a corner of the upper block's footprint: on the step face and on the upper block's walls
+        corner = np.flatnonzero(
+            (np.abs(z - zmin - 4.1) < 1e-9)
+            & (np.abs(np.abs(mesh.xyz[:, 0]) - 5) < 1e-9)
+            & (np.abs(np.abs(mesh.xyz[:, 1]) - 5) < 1e-9)
+        )[0]
+        mesh.xyz[corner, 2] -= 2.85e-5
+        moved.append(corner)
+        return mesh
+
+    monkeypatch.setattr(reference, "_topomesh", off_by_tolerance)
+    heights = 0.1 + 0.2 * np.arange(35)
+    ref = exact_sections(part, heights, chord=1e-3, segment_length=2.0, deflection=0.01)
+    assert moved and ref.flat_planes == [20]
+    assert ref.perimeters()[20] == pytest.approx(40.0, abs=1e-6)
+    assert sum(map(closed_length, ref.below_loops[20])) == pytest.approx(80.0, abs=1e-6)
 
 
 def test_unknown_baseline_is_refused():
@@ -170,10 +255,7 @@ def test_corpus_part_report_matches_independent_recomputation(corpus, tmp_path):
 
     z = np.asarray(mesh.planes.section_z)
     cuts = trimesh_sections(occt_stl(mesh.part, "occt_high_quality", tmp_path / "b.stl"), z)
-    flat = set()
-    for w in report.warnings:
-        if w.startswith("the report measures plane(s)"):
-            flat = {int(x) for x in w.split("plane(s) ")[1].split(" just")[0].split(", ")}
+    flat = {layer.index for layer in base.layers if layer.flat_side}
     step = 0.002
     checked = 0
     for i in range(3, len(z), max(1, len(z) // 8)):
