@@ -152,33 +152,36 @@ def _cmd_slice(args: argparse.Namespace) -> int:
 
         baselines = parse_baselines(args.baselines)
 
-    from worker.dst.pipeline import slice_step  # noqa: PLC0415 - OCP takes a second to import
-
     start = time.perf_counter()
     progress = _progress(args, start)
-    mesh = slice_step(args.input, params, progress=progress)
-    size = mesh.write_3mf(args.output) if three_mf else mesh.write_stl(args.output, ascii=args.ascii)
-    if not args.quiet:
-        st = mesh.stats
-        print(
-            f"wrote {args.output}: {st['triangles']} triangles, {st['planes']} planes, {size} bytes "
-            f"in {time.perf_counter() - start:.1f}s",
-            file=sys.stderr,
-        )
-    if args.report:
-        from worker.dst.report import build_report  # noqa: PLC0415
 
-        report = build_report(
-            mesh.part,
+    def write(mesh) -> None:
+        size = mesh.write_3mf(args.output) if three_mf else mesh.write_stl(args.output, ascii=args.ascii)
+        if not args.quiet:
+            st = mesh.stats
+            print(
+                f"wrote {args.output}: {st['triangles']} triangles, {st['planes']} planes, {size} bytes "
+                f"in {time.perf_counter() - start:.1f}s",
+                file=sys.stderr,
+            )
+
+    if args.report:
+        from worker.dst.report import slice_and_report  # noqa: PLC0415 - OCP takes a second to import
+
+        _, report = slice_and_report(
+            args.input,
             params,
-            file_name=args.input,
-            dst=mesh,
             baselines=baselines,
             progress=progress,
             processes=args.processes,
+            on_mesh=write,
         )
         _write_report(args, report, args.report)
     else:
+        from worker.dst.pipeline import slice_step  # noqa: PLC0415
+
+        mesh = slice_step(args.input, params, progress=progress)
+        write(mesh)
         for w in mesh.warnings:
             print(f"warning: {w}", file=sys.stderr)
     return 0

@@ -26,31 +26,41 @@ def run_job(
     """
     from worker.dst.baselines import parse_baselines
     from worker.dst.params import SliceParams
-    from worker.dst.pipeline import slice_step
     from worker.dst.render import write_html, write_json, write_plot
-    from worker.dst.report import build_report
+    from worker.dst.report import slice_and_report
 
     values = dict(params)
     baselines = parse_baselines(values.pop("baselines", None))
     p = SliceParams.parse(**values)
-    mesh = slice_step(input_path, p, progress=lambda s, f: progress(s, 0.55 * f))
-    mesh.write_stl(job_dir / "mesh.stl")
-    result: dict[str, Any] = {
-        "triangles": len(mesh.triangles),
-        "vertices": len(mesh.vertices),
-        "planes": len(mesh.planes),
-        "height_mm": float(mesh.stats["height_mm"]),
-        "dst_seconds": mesh.stats["timings_s"]["total"],
-    }
-    progress("deviation report", 0.55)
-    report = build_report(
-        mesh.part,
+    result: dict[str, Any] = {}
+
+    def write_mesh(mesh) -> None:
+        # written as soon as it is built, while the report's helpers work
+        mesh.write_stl(job_dir / "mesh.stl")
+        result.update(
+            triangles=len(mesh.triangles),
+            vertices=len(mesh.vertices),
+            planes=len(mesh.planes),
+            height_mm=float(mesh.stats["height_mm"]),
+            dst_seconds=mesh.stats["timings_s"]["total"],
+        )
+        progress("deviation report", 0.55)
+
+    def stage(s: str, f: float) -> None:
+        # the build 0 .. 0.55 of the job, the report 0.55 .. 0.95
+        if f < 0.5:
+            progress(s, 1.1 * f)
+        else:
+            progress(f"report: {s}", 0.55 + 0.8 * (f - 0.5))
+
+    _, report = slice_and_report(
+        input_path,
         p,
         file_name=file_name,
-        dst=mesh,
         baselines=baselines,
-        progress=lambda s, f: progress(f"report: {s}", 0.55 + 0.4 * f),
+        progress=stage,
         processes=report_processes,
+        on_mesh=write_mesh,
     )
     write_json(report, job_dir / "report.json")
     progress("plots", 0.96)

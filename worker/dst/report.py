@@ -45,10 +45,16 @@ from worker.dst.errors import DstError, ResourceLimitExceeded, TessellationError
 from worker.dst.forked import Task, TaskDied, TaskGroup
 from worker.dst.meshops import edge_defects, signed_volume
 from worker.dst.params import SliceParams
-from worker.dst.pipeline import DstMesh, bbox_diagonal, simplification_warnings, topo_deflection
+from worker.dst.pipeline import (
+    DstMesh,
+    bbox_diagonal,
+    simplification_warnings,
+    slice_part,
+    topo_deflection,
+)
 from worker.dst.planes import plan_planes
 from worker.dst.reference import closed_length, exact_sections
-from worker.dst.step_io import LoadedPart
+from worker.dst.step_io import LoadedPart, read_step
 
 REPORT_VERSION = "1.1"  # 1.1: layers carry flat_side (flat faces on planes measured on both sides)
 Progress = Callable[[str, float], None]
@@ -307,7 +313,48 @@ def build_report(
     report = progress or (lambda stage, frac: None)
     baselines = parse_baselines(list(baselines))
     with TaskGroup(forked=processes != 1, limit=processes) as tasks:
-        return _build_report(part, params, file_name, dst, meshes, baselines, tasks, report)
+        side = tasks.submit(_occt_side, part, baselines, not tasks.forked)
+        return _build_report(part, params, file_name, dst, meshes, baselines, tasks, side, report)
+
+
+def slice_and_report(
+    path: str | os.PathLike[str],
+    params: SliceParams,
+    *,
+    file_name: str | None = None,
+    baselines: Sequence[str] = DEFAULT_BASELINES,
+    progress: Progress | None = None,
+    processes: int | None = None,
+    on_mesh: Callable[[DstMesh], None] | None = None,
+) -> tuple[DstMesh, Report]:
+    """Read ``path``, build its DST mesh and the mesh's report, the report's OCCT work (the
+    baselines, the exact box and volume) started in a helper process before the DST build, on the
+    core that build leaves idle much of the time. ``on_mesh`` gets the mesh as soon as it is built
+    (to write it before the report is done). Progress: the build 0 .. 0.5, the report 0.5 .. 1."""
+    report = progress or (lambda stage, frac: None)
+    baselines = parse_baselines(list(baselines))
+    t0 = time.perf_counter()
+    report("reading STEP", 0.0)
+    part = read_step(path)
+    with TaskGroup(forked=processes != 1, limit=processes) as tasks:
+        side = tasks.submit(_occt_side, part, baselines, not tasks.forked) if tasks.forked else None
+        mesh = slice_part(part, params, progress=lambda s, f: report(s, 0.5 * f), t0=t0)
+        if on_mesh is not None:
+            on_mesh(mesh)
+        if side is None:
+            side = tasks.submit(_occt_side, part, baselines, not tasks.forked)
+        out = _build_report(
+            part,
+            params,
+            os.fspath(path) if file_name is None else file_name,
+            mesh,
+            (),
+            baselines,
+            tasks,
+            side,
+            lambda s, f: report(s, 0.5 + 0.5 * f),
+        )
+    return mesh, out
 
 
 def _build_report(
@@ -318,13 +365,13 @@ def _build_report(
     meshes: Sequence[MeshInput],
     baselines: tuple[str, ...],
     tasks: TaskGroup,
+    side: Task,
     report: Progress,
 ) -> Report:
+    """The report, ``side`` being ``_occt_side``'s task. OCCT's own work (the baselines, the exact
+    box and volume) holds the GIL: it runs in a child process beside the exact reference, on one
+    thread there (OCCT's thread pool stays behind in this process when it forks)."""
     warnings: list[str] = []
-    # OCCT's own work (the baselines, the exact box and volume) holds the GIL: it runs in a child
-    # process beside the exact reference, on one thread there (OCCT's thread pool stays behind in
-    # this process when it forks).
-    side = tasks.submit(_occt_side, part, baselines, not tasks.forked)
     report("exact sections", 0.0)
     t = time.perf_counter()
     diag, _ = bbox_diagonal(part)

@@ -336,6 +336,28 @@ def test_forked_helpers_and_one_process_give_the_same_report(hemisphere, monkeyp
     assert forked.input == inline.input and forked.warnings == inline.warnings
 
 
+@pytest.mark.parametrize("processes", [None, 1])
+def test_slice_and_report_gives_the_mesh_and_report_of_the_two_steps(hemisphere, processes):
+    """The job's form (the baselines meshed in a helper started before the DST build, the mesh
+    handed over as soon as it is built) gives the same mesh and the same numbers as slicing and
+    then reporting."""
+    from worker.dst.report import slice_and_report
+
+    path, mesh, _, _ = hemisphere
+    params = SliceParams(layer_height=0.2)
+    seen = []
+    got, report = slice_and_report(
+        path, params, baselines=["occt_fast"], processes=processes, on_mesh=seen.append
+    )
+    assert seen == [got]
+    np.testing.assert_array_equal(got.vertices32, mesh.vertices32)
+    np.testing.assert_array_equal(got.triangles, mesh.triangles)
+    two_steps = build_report(mesh.part, params, file_name=str(path), dst=mesh, baselines=["occt_fast"])
+    assert [m.name for m in report.meshes] == ["dst", "occt_fast"]
+    assert _numbers(report) == _numbers(two_steps)
+    assert report.input == two_steps.input and report.warnings == two_steps.warnings
+
+
 def test_a_crash_while_meshing_a_baseline_ends_the_report_cleanly(hemisphere, monkeypatch):
     """OCCT dying in the baselines' helper (here: the helper killed) is an error naming the
     baselines and the way round them, not a hang or a dead job process."""
