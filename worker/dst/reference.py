@@ -25,12 +25,17 @@ from OCP.TopExp import TopExp_Explorer
 from OCP.TopoDS import TopoDS
 
 from worker.dst import constants as C
+from worker.dst.errors import TessellationError
 from worker.dst.lowest import snap_extremes, snap_local_extremes
 from worker.dst.pipeline import bbox_diagonal
 from worker.dst.sampling import RingSampler, VertexPool
 from worker.dst.sections import cut_topology
 from worker.dst.step_io import LoadedPart
 from worker.dst.topomesh import build_topomesh
+
+# Deflections (times the one asked for) tried in turn for the reference's topology mesh: BRepMesh's
+# result at some deflections is not a closed manifold on some files, at others it is.
+RETRY_DEFLECTIONS = (1.0, 0.7, 1.4, 2.0)
 
 # The exact sections of a plane through a flat face are taken just above and just below the face: the
 # plane moved by twice the larger of the on-plane snapping tolerance and the plane's float32 half-step
@@ -81,7 +86,8 @@ def exact_sections(
     ``heights`` may be a function of the part's exact height (highest minus lowest point).
     """
     diag, _ = bbox_diagonal(part)  # merge tolerance relative to the whole part, as in the DST build
-    meshes = [_topomesh(s, deflection, diag) for s in part.solids]
+    meshes, used = zip(*[_reference_topomesh(s, deflection, diag) for s in part.solids], strict=True)
+    meshes = list(meshes)
     zmin, zmax = snap_extremes(meshes)
     if callable(heights):
         heights = heights(zmax - zmin)
@@ -108,6 +114,7 @@ def exact_sections(
         below_loops={j: [lp for lp, _ in ps] for j, ps in pairs_below.items()},
         below_corners={j: [c for _, c in ps] for j, ps in pairs_below.items()},
         method=(
+            f"sections found on a topology mesh of deflection {_deflections(used)} mm, their "
             "points solved exactly on the B-rep faces and edges (Newton / Brent, |z - plane| < "
             f"{C.LEVEL_TOL_MM:g} mm) and joined into closed polylines, sampled until each span's midpoint "
             f"lies within {chord:g} mm of its chord; at a plane through a flat face, the sections just above "
@@ -183,6 +190,24 @@ def occt_sections(
             exp.Next()
         out.append(np.asarray(pts, dtype=np.float64).reshape(-1, 2))
     return out
+
+
+def _deflections(used) -> str:
+    values = sorted(set(used))
+    return " / ".join(f"{d:.3g}" for d in values)
+
+
+def _reference_topomesh(solid, deflection: float, diag: float):
+    """The solid's topology mesh at ``deflection``, or, where BRepMesh's mesh there is not a closed
+    manifold (it depends on the deflection: 11752.stp at half the DST build's), at the next of
+    ``RETRY_DEFLECTIONS`` times it that is. Returns the mesh and the deflection used."""
+    for factor in RETRY_DEFLECTIONS[:-1]:
+        try:
+            return _topomesh(solid, deflection * factor, diag), deflection * factor
+        except TessellationError:
+            continue  # the next deflection
+    last = deflection * RETRY_DEFLECTIONS[-1]
+    return _topomesh(solid, last, diag), last
 
 
 def _topomesh(solid, deflection: float, diag: float):

@@ -227,6 +227,33 @@ def test_flat_face_with_a_vertex_off_its_plane_by_the_file_tolerance(tmp_path, m
     assert sum(map(closed_length, ref.below_loops[20])) == pytest.approx(80.0, abs=1e-6)
 
 
+def test_reference_topology_retries_another_deflection(tmp_path, monkeypatch):
+    """BRepMesh's mesh is not a closed manifold at some deflections on some files (11752.stp at the
+    reference's): the reference then takes the next deflection that works, and says which."""
+    from tests.conftest import write_step
+    from worker.dst import reference
+    from worker.dst.errors import TessellationError
+
+    part = read_step(write_step(_stepped(True), tmp_path / "stepped.step"))
+    build, tried = reference._topomesh, []
+
+    def picky(solid, deflection, diag):
+        tried.append(deflection)
+        if len(tried) < 3:
+            raise TessellationError("topology mesh is not a closed 2-manifold")
+        return build(solid, deflection, diag)
+
+    monkeypatch.setattr(reference, "_topomesh", picky)
+    ref = exact_sections(part, np.array([1.1, 5.1]), chord=1e-3, segment_length=2.0, deflection=0.01)
+    assert tried == pytest.approx([0.01 * f for f in reference.RETRY_DEFLECTIONS[:3]])
+    assert "deflection 0.014 mm" in ref.method
+    assert ref.perimeters() == pytest.approx([80.0, 40.0])
+    tried.clear()
+    monkeypatch.setattr(reference, "RETRY_DEFLECTIONS", (1.0, 2.0))
+    with pytest.raises(TessellationError):
+        exact_sections(part, np.array([1.1]), chord=1e-3, segment_length=2.0, deflection=0.01)
+
+
 def test_unknown_baseline_is_refused():
     from worker.dst.errors import InvalidParameters
 
