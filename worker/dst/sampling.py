@@ -805,7 +805,12 @@ class RingSampler:
         q = np.concatenate([ci, ci])
         frac = np.repeat([0.25, 0.75], len(ci))
         pts, ok, _ = solve(ri[q], sa[q] + frac * (sb[q] - sa[q]))
-        q_sag = np.where(ok, _point_segment_distance(np.nan_to_num(pts), pa[q], pb[q]), 0.0)
+        pts = np.nan_to_num(pts)
+        # a point beyond the chord's ends belongs to the curve past a run's end (the topology path
+        # overshooting a corner), not to this segment: it says nothing of the segment's distance
+        t_q = _chord_position(pts, pa[q], pb[q])
+        ok &= (t_q > 0.0) & (t_q < 1.0)
+        q_sag = np.where(ok, _point_segment_distance(pts, pa[q], pb[q]), 0.0)
         np.maximum.at(sag, q, q_sag)
         self.stats.quarter_checks += len(ci)
 

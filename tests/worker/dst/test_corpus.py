@@ -3,7 +3,7 @@
 A mesh is checked for watertightness, for the slab property (each plane cuts exactly the rings), and
 against OCCT's exact section (``BRepAlgoAPI_Section`` with approximation, sampled densely) at three
 planes: every ring vertex lies on the exact section, and every exact section point lies within the
-chord budget of the ring polylines.
+chord budget of the ring polylines; and at every plane as the deviation report measures it.
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ from tests.worker.dst.meshcheck import (
 from worker.dst.errors import DstError
 from worker.dst.params import SliceParams
 from worker.dst.pipeline import slice_step
+from worker.dst.report import build_report
 
 pytestmark = pytest.mark.corpus
 
@@ -52,6 +53,15 @@ SLOW = {
 # Files that hold closed solids but on which the core does not yet produce a mesh: kept visible as
 # strict xfails (a fix turns them into failures until this list is updated).
 KNOWN_FAILURES = {}
+
+
+# Every plane of every sliced file is measured as the report measures it (``_check_every_plane``): a
+# DST ring vertex may be this far from the report's reference (its resolution, 0.001 mm, plus the
+# file's own tolerance between faces and edges).
+PLANE_VERTEX_TOL_MM = 2e-3
+# Files whose DST mesh is off the exact sections at some planes, with what is known of why: the test
+# xfails on them while the deviation lasts and fails once it is gone.
+KNOWN_PLANE_DEVIATIONS: dict[str, str] = {}
 
 
 # Parts too large for 0.2 mm layers within the triangle limit, sliced coarser so their geometry is
@@ -194,6 +204,33 @@ def test_corpus_file(path: Path, tmp_path):
     vol = mesh.stats["mesh_volume_mm3"] / mesh.part.volume_mm3
     assert 0.97 < vol < 1.03, f"volume ratio {vol}"
     _check_against_exact_sections(mesh)
+    _check_every_plane(mesh, path)
+
+
+def _check_every_plane(mesh, path: Path) -> None:
+    """Every plane, measured as the deviation report measures it (its own exact reference, from a
+    finer topology mesh, sampled to 0.001 mm): the DST cut's vertices on the exact section, the cut
+    within the chord budget of it both ways, as many loops as the exact section. Files with known
+    deviations must still show them (a fix makes the test fail until the entry is removed)."""
+    report = build_report(mesh.part, mesh.params, file_name=str(path), dst=mesh, baselines=())
+    (dst,) = report.meshes
+    resolution = report.reference.resolution_mm
+    bad = []
+    for layer in dst.layers:
+        if (layer.loops_exact or layer.loops) and (layer.vertex_dev is None or layer.chord_dev is None):
+            bad.append(f"z = {layer.z:.4f}: {layer.loops} loops cut, {layer.loops_exact} exact")
+        elif layer.vertex_dev is not None and layer.vertex_dev > PLANE_VERTEX_TOL_MM:
+            bad.append(f"z = {layer.z:.4f}: vertex_dev {layer.vertex_dev:.4g} mm")
+        elif layer.chord_dev is not None and layer.chord_dev > mesh.params.chord_error + resolution + 1e-6:
+            bad.append(f"z = {layer.z:.4f}: chord_dev {layer.chord_dev:.4g} mm")
+        elif layer.loops + layer.open_chains != layer.loops_exact:
+            bad.append(f"z = {layer.z:.4f}: {layer.loops} loops cut, {layer.loops_exact} exact")
+    known = KNOWN_PLANE_DEVIATIONS.get(path.name)
+    if known is None:
+        assert not bad, f"{len(bad)} of {len(dst.layers)} planes: " + "; ".join(bad[:8])
+        return
+    assert bad, f"{path.name} now passes at every plane: remove it from KNOWN_PLANE_DEVIATIONS"
+    pytest.xfail(f"{known} ({len(bad)} planes, e.g. {bad[0]})")
 
 
 def test_a_face_occt_cannot_mesh_is_closed_and_reported():
