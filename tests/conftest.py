@@ -13,7 +13,7 @@ CORPUS = Path(__file__).resolve().parents[1].parent / "shared" / "corpus"
 
 def build_part(kind: str, **kw):
     """An analytic part as a build123d shape (mm). Kinds: hemisphere, torus, cone, tube, step_box,
-    tangent_features, dome_below_top, tilted_boss, through_hole, lying_cylinder."""
+    tangent_features, dome_below_top, tilted_boss, through_hole, lying_cylinder, half_torus."""
     import build123d as bd
 
     if kind == "hemisphere":
@@ -83,7 +83,48 @@ def build_part(kind: str, **kw):
         cyl = bd.Pos(-2, 0, top - 3.0) * bd.Cylinder(3.0, 20, rotation=(0, 90, 0))
         below = bd.Box(60, 60, 10, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MAX))
         return plate + post + (cyl - below)
+    if kind == "half_torus":
+        return _half_torus(kw.get("major", 4.0), kw.get("minor", 2.336), kw.get("seam", 0.1))
     raise ValueError(kind)
+
+
+def _half_torus(major: float, minor: float, seam: float):
+    """The upper half of a torus standing on its rim (axis along x, top at z = major + minor), closed
+    by its two end disks on z = 0, its one toroidal face parametrised past v = 2 pi: the tube's seam
+    at v = ``seam`` rad (``seam`` x minor mm along the tube from the top), the top at v = 2 pi."""
+    import build123d as bd
+    from OCP.BRep import BRep_Tool
+    from OCP.BRepAdaptor import BRepAdaptor_Curve
+    from OCP.BRepBuilderAPI import (
+        BRepBuilderAPI_MakeFace,
+        BRepBuilderAPI_MakeSolid,
+        BRepBuilderAPI_MakeWire,
+        BRepBuilderAPI_Sewing,
+    )
+    from OCP.Geom import Geom_ToroidalSurface
+    from OCP.gp import gp_Ax3, gp_Dir, gp_Pnt
+    from OCP.ShapeFix import ShapeFix_Solid
+    from OCP.TopAbs import TopAbs_EDGE, TopAbs_SHELL
+    from OCP.TopExp import TopExp_Explorer
+    from OCP.TopoDS import TopoDS
+
+    surface = Geom_ToroidalSurface(gp_Ax3(gp_Pnt(0, 0, 0), gp_Dir(1, 0, 0), gp_Dir(0, 0, 1)), major, minor)
+    face = BRepBuilderAPI_MakeFace(surface, -math.pi / 2, math.pi / 2, seam, seam + 2 * math.pi, 1e-7).Face()
+    sewing = BRepBuilderAPI_Sewing(1e-6)
+    sewing.Add(face)
+    exp = TopExp_Explorer(face, TopAbs_EDGE)
+    while exp.More():  # the two end circles on z = 0 get a disk each
+        edge = TopoDS.Edge(exp.Current())
+        curve = BRepAdaptor_Curve(edge)
+        mid = curve.Value(0.5 * (curve.FirstParameter() + curve.LastParameter()))
+        if not BRep_Tool.IsClosed_s(edge, face) and abs(mid.Z()) < 1e-9:
+            sewing.Add(BRepBuilderAPI_MakeFace(BRepBuilderAPI_MakeWire(edge).Wire()).Face())
+        exp.Next()
+    sewing.Perform()
+    shell = TopoDS.Shell(TopExp_Explorer(sewing.SewedShape(), TopAbs_SHELL).Current())
+    fix = ShapeFix_Solid(BRepBuilderAPI_MakeSolid(shell).Solid())
+    fix.Perform()
+    return bd.Solid(fix.Solid())
 
 
 def write_step(shape, path: Path, *, nurbs: bool = True, unit: str | None = None) -> Path:

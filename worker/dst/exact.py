@@ -62,7 +62,20 @@ class FaceEval:
         p = self._sas.NextValueOfUV(
             gp_Pnt2d(float(seed[0]), float(seed[1])), gp_Pnt(*map(float, xyz)), 1e-9, -1.0
         )
-        return p.X(), p.Y()
+        # the projection can come back on another period than the seed's (a torus face running past
+        # v = 2 pi: seeded at v = 6.32, it gave v = 0)
+        return self.same_branch((p.X(), p.Y()), seed)
+
+    def same_branch(self, uv: tuple[float, float], near: tuple[float, float]) -> tuple[float, float]:
+        """``uv`` moved by whole periods of a periodic surface to the branch nearest ``near``."""
+        out = [float(uv[0]), float(uv[1])]
+        for axis, (periodic, period) in enumerate(
+            ((self.ad.IsUPeriodic(), self.ad.UPeriod), (self.ad.IsVPeriodic(), self.ad.VPeriod))
+        ):
+            if periodic:
+                step = period()
+                out[axis] += round((near[axis] - out[axis]) / step) * step
+        return out[0], out[1]
 
     def point(self, u: float, v: float) -> tuple[float, float, float]:
         p = self.ad.Value(u, v)

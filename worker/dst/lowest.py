@@ -195,7 +195,8 @@ def _move_node(mesh: TopoMesh, node: int, p: np.ndarray, uv: tuple[float, float]
         key = (int(mesh.tri_face[t]), *mesh.tri_uv[t, c].tolist())
         if key not in uv_of:
             fe = mesh.faces[key[0]]
-            new = uv if uv is not None else fe.uv_near(tuple(p), key[1:])
+            # on the old (u, v)'s branch of a periodic surface: a seam node keeps one (u, v) per side
+            new = fe.same_branch(uv, key[1:]) if uv is not None else fe.uv_near(tuple(p), key[1:])
             # keep the old (u, v) where the projection does not give the point back (a singular spot)
             ok = np.linalg.norm(np.subtract(fe.point(*new), p)) < _SAME_POINT_MM
             uv_of[key] = new if ok else key[1:]

@@ -397,14 +397,8 @@ class RingSampler:
         shift = np.zeros((2, 2))
         for k, (end_xyz, idx) in enumerate(((start, 0), (end, -1))):
             if end_xyz is not None:
+                # on the seed's period of a periodic surface (uv_near): the same point
                 shift[k] = np.subtract(ev.uv_near(tuple(end_xyz), tuple(uv[idx])), uv[idx])
-        # the projection may return the end on another period of a periodic surface: same point
-        for axis, periodic, period in (
-            (0, ev.ad.IsUPeriodic, ev.ad.UPeriod),
-            (1, ev.ad.IsVPeriodic, ev.ad.VPeriod),
-        ):
-            if periodic():
-                shift[:, axis] -= period() * np.round(shift[:, axis] / period())
         w = (s / s[-1])[:, None] if s[-1] > 0 else np.zeros((len(s), 1))
         return uv + (1.0 - w) * shift[0] + w * shift[1]
 

@@ -341,3 +341,30 @@ def test_corners_inside_one_face_are_ring_vertices(tmp_path):
     for j in range(n_planes):
         ring = v[mesh.vertex_plane == j, :2]
         assert np.linalg.norm(ring[:, None] - corners[None], axis=2).min(axis=0).max() < 1e-6
+
+
+def test_a_face_parametrised_past_its_period_keeps_its_nodes_on_their_branch(make_step):
+    """A torus face whose tube parameter runs from 0.1 to 0.1 + 2 pi (as trj4_k1_top's does): the
+    projection OCCT offers for a node moved onto the part's top came back a period away (v = 0 for
+    v = 6.32), leaving its triangles spanning the whole period; every section below the top then came
+    out as jumbled points joined by segments up to 12 mm long. Rings on the exact torus, within the
+    budgets, none kept over budget."""
+    major, minor = 4.0, 2.336
+    mesh = slice_step(make_step("half_torus", nurbs=False), SliceParams(layer_height=0.2))
+    assert_watertight(mesh)
+    assert_slab_property(mesh)
+    assert mesh.stats["tolerance_gaps"] == 0
+    edges, planes = ring_edges(mesh)
+    p = mesh.vertices[edges] + np.array([0.0, 0.0, mesh.z_offset])
+    length = np.linalg.norm(p[:, 1] - p[:, 0], axis=1)
+    assert length.max() <= 0.8 + 1e-9
+    # on the torus: (sqrt(y^2 + z^2) - R)^2 + x^2 = r^2 (a ring vertex to float32 precision)
+    q = p.reshape(-1, 3).astype(np.float64)
+    q[:, 2] = mesh.z_offset + mesh.planes.section_z[np.repeat(planes, 2)]
+    off = np.abs(np.hypot(np.hypot(q[:, 1], q[:, 2]) - major, q[:, 0]) - minor)
+    assert off.max() < 1e-5
+    # the top plane (36 um below the top) cuts the small closed curve through x = +-sqrt(r^2 - (z - R)^2)
+    top = len(mesh.planes) - 1
+    z_top = mesh.z_offset + mesh.planes.section_z[top]
+    ring = mesh.vertices[mesh.vertex_plane == top]
+    assert np.abs(ring[:, 0]).max() == pytest.approx(math.sqrt(minor**2 - (z_top - major) ** 2), abs=1e-5)
