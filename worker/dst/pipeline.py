@@ -209,6 +209,13 @@ def slice_part(
             "tangent to the surface, or a face and its edge disagreeing within the file's tolerance); "
             f"the longest at {stats['max_gap_at']}"
         )
+    if stats["unchecked_segments"]:
+        warnings.append(
+            f"{stats['unchecked_segments']} ring segment(s) could not be checked against the chord budget: "
+            "no exact point of the section could be placed between their ends (a feature smaller than "
+            "the topology mesh, or a face whose parametrisation has a pole there); the deviation report "
+            "measures them"
+        )
     for j in sorted(flat_planes):
         warnings.append(
             f"a flat face lies on slicing plane {j} (z = {planes.z[j]:.4f} mm): the exact section there is an "

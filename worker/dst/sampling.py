@@ -45,6 +45,9 @@ from worker.dst.sections import SectionTopology
 from worker.dst.topomesh import TopoMesh
 
 GAP_SPAN_REL = 1e-6  # a seed interval this small (relative to its run) cannot hold another exact point
+# A segment's midpoint (placed by arc length along the seed path) this close to either end, relative
+# to the segment, is off the path: solved again from the chord's middle (``_midpoints_off_the_path``)
+MID_OFF_PATH = 0.1
 # A run whose exact end lies more than this many topology deflections from its topology crossing has
 # its points checked against the face's trim (the ordinary gap is within one deflection)
 SUSPECT_DEFLECTIONS = 5.0
@@ -118,6 +121,7 @@ class SamplingStats:
     reordered_crossings: int = 0  # crossings put at the section point nearest them (see _solve_crossing)
     kink_corners: int = 0  # corners placed where a section crosses a C0 line inside a face
     quarter_checks: int = 0  # segments also checked at their quarter points (see _quarter_sags)
+    unchecked_segments: int = 0  # segments whose midpoint could not be placed (see _midpoints_off_the_path)
     max_gap_mm: float = 0.0
     max_gap_at: str = ""
 
@@ -669,6 +673,7 @@ class RingSampler:
                 break
             mid, mid_ok, _ = solve(ri, 0.5 * (sa + sb))
             length = np.linalg.norm(pb - pa, axis=1)
+            self._midpoints_off_the_path(run_face[ri], run_z[ri], run_step[ri], mid, mid_ok, pa, pb, length)
             sag = np.where(mid_ok, _point_segment_distance(np.nan_to_num(mid), pa, pb), 0.0)
             self._quarter_sags(solve, sag, mid, mid_ok, length, pending)
             bad = ((length > L) | (sag > e)) & (length > 1e-9)
@@ -708,6 +713,23 @@ class RingSampler:
             bq = b_idx[seg]
             ns = sa[bq] + (sb[bq] - sa[bq]) * k / m[seg]
             new_xyz, new_ok, new_uv = solve(ri[bq], ns)
+            # a new point must fall inside its segment: one the seed path put beyond it (a path
+            # through a pole of the face's parametrisation) is no subdivision of it
+            t_new = _chord_position(np.nan_to_num(new_xyz), pa[bq], pb[bq])
+            new_ok &= (t_new > 0.0) & (t_new < 1.0)
+            if not new_ok.all():  # from the chord's points projected on the face instead
+                miss = np.flatnonzero(~new_ok)
+                frac = (k / m[seg])[miss]
+                guess = pa[bq][miss] + frac[:, None] * (pb[bq][miss] - pa[bq][miss])
+                xyz_m, ok_m, uv_m = self._solve_from_chord(
+                    run_face[ri[bq]][miss],
+                    run_z[ri[bq]][miss],
+                    run_step[ri[bq]][miss],
+                    guess,
+                    pa[bq][miss],
+                    pb[bq][miss],
+                )
+                new_xyz[miss[ok_m]], new_uv[miss[ok_m]], new_ok[miss[ok_m]] = xyz_m[ok_m], uv_m[ok_m], True
             run_all.append(ri[bq][new_ok])
             s_all.append(ns[new_ok])
             xyz_all.append(new_xyz[new_ok])
@@ -775,6 +797,45 @@ class RingSampler:
         below = uv < box[:, [0, 2]] - tol
         above = uv > box[:, [1, 3]] + tol
         return ((below | above) & chk).any(axis=1)
+
+    def _midpoints_off_the_path(self, face, zc, step, mid, mid_ok, pa, pb, length) -> None:
+        """Solve again (in place) the midpoints that the seed path put off their segment's middle.
+
+        A seed path interpolated in (u, v) through a topology triangle with a corner at a pole of
+        its face's parametrisation (or across a seam) can run anywhere on the surface: the midpoint
+        then lands near an end of its segment, or nowhere, and the segment would pass unchecked (on
+        bug29241 two 0.15 mm chords cut across a 0.07 mm boss). Those are solved again from the
+        chord's middle projected on the face; a segment whose midpoint still cannot be placed in
+        its middle is counted (``unchecked_segments``) and reported.
+        """
+        t = _chord_position(np.nan_to_num(mid), pa, pb)
+        # (a segment no longer than the chord budget is within it whatever its arc: up to a half circle)
+        off = np.flatnonzero(
+            ((~mid_ok) | (t < MID_OFF_PATH) | (t > 1.0 - MID_OFF_PATH)) & (length > self.chord)
+        )
+        if not len(off):
+            return
+        p, ok, _ = self._solve_from_chord(
+            face[off], zc[off], step[off], 0.5 * (pa[off] + pb[off]), pa[off], pb[off]
+        )
+        mid[off[ok]], mid_ok[off[ok]] = p[ok], True
+        self.stats.unchecked_segments += int((~ok).sum())
+
+    def _solve_from_chord(self, face, zc, step, guess, pa, pb) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Section points seeded from points ``guess`` on the chords pa-pb projected on their faces
+        (not from the seed path): (points, mask of those found strictly between their chord's ends,
+        (u, v))."""
+        uv = np.array(
+            [
+                self.mesh.faces[int(f)].uv_near(
+                    tuple(g), self.mesh.faces[int(f)].uv_near(tuple(a), (0.0, 0.0))
+                )
+                for f, g, a in zip(face.tolist(), guess, pa, strict=True)
+            ]
+        ).reshape(-1, 2)
+        p, ok, out_uv = self._newton(np.asarray(face), uv[:, 0], uv[:, 1], zc, np.asarray(step))
+        t = _chord_position(np.nan_to_num(p), pa, pb)
+        return p, ok & (t > 0.0) & (t < 1.0), out_uv
 
     def _quarter_sags(self, solve, sag, mid, mid_ok, length, pending) -> None:
         """Raise ``sag`` (in place) to the curve's distance from the chord at the quarter points of
