@@ -713,11 +713,14 @@ class RingSampler:
             bq = b_idx[seg]
             ns = sa[bq] + (sb[bq] - sa[bq]) * k / m[seg]
             new_xyz, new_ok, new_uv = solve(ri[bq], ns)
-            # a new point must fall inside its segment: one the seed path put beyond it (a path
-            # through a pole of the face's parametrisation) is no subdivision of it
+            # A new point must fall inside its segment, and not onto an end (the k-th of m - 1 is
+            # expected near k / m): one the seed path put elsewhere (a (u, v) path through a pole of
+            # the face's parametrisation, or round a bend it does not follow) is solved again from
+            # the chord's point projected on the face.
             t_new = _chord_position(np.nan_to_num(new_xyz), pa[bq], pb[bq])
-            new_ok &= (t_new > 0.0) & (t_new < 1.0)
-            if not new_ok.all():  # from the chord's points projected on the face instead
+            margin = 0.25 / m[seg]
+            new_ok &= (t_new > margin) & (t_new < 1.0 - margin)
+            if not new_ok.all():
                 miss = np.flatnonzero(~new_ok)
                 frac = (k / m[seg])[miss]
                 guess = pa[bq][miss] + frac[:, None] * (pb[bq][miss] - pa[bq][miss])
