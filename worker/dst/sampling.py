@@ -44,6 +44,10 @@ from worker.dst.exact import ExactFailure
 from worker.dst.sections import SectionTopology
 from worker.dst.topomesh import TopoMesh
 
+# Segments are accepted with their sampled largest distance from the curve at most this share of the
+# chord budget: the samples (midpoint, quarter points, the parabola through them) can miss the true
+# largest distance by a few per cent where the bend is off-centre.
+CHORD_FILL = 0.97
 GAP_SPAN_REL = 1e-6  # a seed interval this small (relative to its run) cannot hold another exact point
 # A segment's midpoint (placed by arc length along the seed path) this close to either end, relative
 # to the segment, is off the path: solved again from the chord's middle (``_midpoints_off_the_path``)
@@ -676,7 +680,7 @@ class RingSampler:
             self._midpoints_off_the_path(run_face[ri], run_z[ri], run_step[ri], mid, mid_ok, pa, pb, length)
             sag = np.where(mid_ok, _point_segment_distance(np.nan_to_num(mid), pa, pb), 0.0)
             self._quarter_sags(solve, sag, mid, mid_ok, length, pending)
-            bad = ((length > L) | (sag > e)) & (length > 1e-9)
+            bad = ((length > L) | (sag > CHORD_FILL * e)) & (length > 1e-9)
             # No exact point halfway: the plane is tangent to the surface along this segment (the
             # section degenerates to a line or a point there). Keep the segment, count it.
             tangent = bad & ~mid_ok
