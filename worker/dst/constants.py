@@ -4,8 +4,8 @@
 LAYER_HEIGHT_RANGE_MM = (0.01, 2.0)  # FFF/resin printers print between ~0.01 and ~1.2 mm layers
 SEGMENT_LENGTH_RANGE_MM = (0.01, 50.0)  # below 10 um the STL is larger than any slicer keeps
 CHORD_ERROR_RANGE_MM = (0.0001, 1.0)  # 0.1 um is far below float32 resolution on a 100 mm part
-MAX_PLANES = 20_000
-MAX_TRIANGLES = 20_000_000  # a 1 GB binary STL; no slicer loads more in reasonable time  # 4 m of 0.2 mm layers; beyond that the job is certainly a unit mistake
+MAX_PLANES = 20_000  # 4 m of 0.2 mm layers; beyond that the job is certainly a unit mistake
+MAX_TRIANGLES = 20_000_000  # a 1 GB binary STL; no slicer loads more in reasonable time
 
 # --- exactness -------------------------------------------------------------------------------------
 LEVEL_TOL_MM = 1e-10  # a ring vertex's |z - plane| after Newton: far below float32 (1e-6 at 10 mm)

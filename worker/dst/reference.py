@@ -37,11 +37,14 @@ from worker.dst.topomesh import build_topomesh
 # result at some deflections is not a closed manifold on some files, at others it is.
 RETRY_DEFLECTIONS = (1.0, 0.7, 1.4, 2.0)
 
-# The exact sections of a plane through a flat face are taken just above and just below the face: the
-# plane moved by twice the larger of the on-plane snapping tolerance and the plane's float32 half-step
-# (so the face is no longer "on" it). A surface meeting the face moves by that times its slope's
-# cotangent there.
-FLAT_FACE_LIFT_FACTOR = 2.0
+# The exact sections of a plane through a flat face are taken a small offset (mm) above and below it:
+# nearly the limits of the section from either side. A surface meeting the face at a slope moves by
+# this times the slope's cotangent; one tangent to it (a fillet of radius r) by sqrt(2 r offset):
+# 0.0009 mm at r = 100 mm for 4e-9 mm, below the reference's resolution.
+# Offsets tried in turn: a node of another face within the file's tolerance of the plane (a wall's
+# vertex 0.1 um below a face it bounds) can put a crossing where a tiny offset has no exact point.
+FLAT_FACE_OFFSETS_MM = (4e-9, 1e-7, 2e-6, 3e-5)
+Pair = tuple[np.ndarray, np.ndarray]  # a closed loop (k, 2) and its corner mask (k,)
 
 
 @dataclass
@@ -99,10 +102,11 @@ def exact_sections(
     noise = 0.5 * np.spacing(np.abs(np.asarray(heights, dtype=np.float32))).astype(np.float64)
     # per solid: (loop, corner mask) pairs at each plane, and just below its flat faces
     per_solid = [_solid_sections(mesh, world, noise, chord, segment_length) for mesh in meshes]
-    flat = sorted({j for _, below in per_solid for j in below})
+    flat = sorted({j for _, below, _ in per_solid for j in below})
     # just below a flat face on plane j: that solid's section there, every other solid's at j
-    pairs_below = {j: [p for on, below in per_solid for p in below.get(j, on[j])] for j in flat}
-    pairs = [[p for on, _ in per_solid for p in on[j]] for j in range(n_planes)]
+    pairs_below = {j: [p for on, below, _ in per_solid for p in below.get(j, on[j])] for j in flat}
+    pairs = [[p for on, _, _ in per_solid for p in on[j]] for j in range(n_planes)]
+    offsets = [off for _, _, off in per_solid if off is not None]
     return ExactSections(
         heights=np.asarray(heights, dtype=np.float64),
         loops=[[lp for lp, _ in ps] for ps in pairs],
@@ -117,39 +121,57 @@ def exact_sections(
             f"sections found on a topology mesh of deflection {_deflections(used)} mm, their "
             "points solved exactly on the B-rep faces and edges (Newton / Brent, |z - plane| < "
             f"{C.LEVEL_TOL_MM:g} mm) and joined into closed polylines, sampled until each span's midpoint "
-            f"lies within {chord:g} mm of its chord; at a plane through a flat face, the sections just above "
-            f"and just below the face (the plane moved by {FLAT_FACE_LIFT_FACTOR:g}x the larger of "
-            f"{C.ON_PLANE_TOL_MM:g} mm and its float32 half-step)"
+            f"lies within {chord:g} mm of its chord"
+            + (
+                f"; at a plane through a flat face, the sections {max(offsets):g} mm above and below the face"
+                if offsets
+                else ""
+            )
         ),
     )
 
 
 def _solid_sections(
     mesh, world: np.ndarray, noise: np.ndarray, chord: float, segment_length: float
-) -> tuple[list[list[tuple[np.ndarray, np.ndarray]]], dict[int, list[tuple[np.ndarray, np.ndarray]]]]:
+) -> tuple[list[list[Pair]], dict[int, list[Pair]], float | None]:
     """One solid's dense sections: (loop, corner mask) pairs per plane, and per plane through a flat
-    face of the solid, the pairs just below the face (the per-plane ones are then just above it)."""
-    n_planes = len(world)
+    face of the solid, the pairs just below the face (the per-plane ones are then just above it);
+    and the offset from the face those two were taken at (None without a flat face)."""
     topo = cut_topology(mesh, world, on_plane_tol=C.ON_PLANE_TOL_MM, noise_tol=noise)
-    owner, lowered = np.arange(n_planes), np.zeros(n_planes, dtype=bool)
-    flat = topo.flat_planes
-    if flat:
-        # The solid's section at a plane through its flat face is an area: take the sections just
-        # above and just below the face instead (the outlines of what stands on it and of what it
-        # caps: the two slicer conventions), in one cut with the two heights in place of the plane.
-        j = np.asarray(flat)
-        lift = FLAT_FACE_LIFT_FACTOR * np.maximum(C.ON_PLANE_TOL_MM, noise[j])
-        ext = np.concatenate([world, world[j] - lift])
-        ext[j] += lift
+    if not topo.flat_planes:
+        return *_sample(
+            mesh, topo, np.arange(len(world)), np.zeros(len(world), dtype=bool), [], chord, segment_length
+        ), None
+    # The solid's section at a plane through its flat face is an area: take the sections just above
+    # and just below the face instead (the outlines of what stands on it and of what it caps: the two
+    # slicer conventions), in one cut with the two heights in place of the plane. The nodes as the
+    # first cut placed them: a flat face's nodes exactly on its plane (those off it by the file's
+    # tolerance too), and every node it put on a plane exactly there, so tolerances below the offset
+    # reproduce the first cut's decisions at the other planes while the moved planes miss the face.
+    placed = replace(mesh, xyz=np.column_stack([mesh.xyz[:, :2], topo.z]))
+    j = np.asarray(topo.flat_planes)
+
+    def at(offset: float):
+        ext = np.concatenate([world, world[j] - offset])
+        ext[j] += offset
         order = np.argsort(ext, kind="stable")
-        owner = np.concatenate([owner, j])[order]
-        lowered = np.concatenate([lowered, np.ones(len(j), dtype=bool)])[order]
-        ext_noise = np.concatenate([noise, noise[j]])[order]
-        # the nodes as placed on the planes by the first cut: a flat face's nodes exactly on its
-        # plane (those off it by the file's tolerance too), so the moved planes miss the whole face
-        placed = replace(mesh, xyz=np.column_stack([mesh.xyz[:, :2], topo.z]))
-        topo = cut_topology(placed, ext[order], on_plane_tol=C.ON_PLANE_TOL_MM, noise_tol=ext_noise)
-        mesh = placed
+        owner = np.concatenate([np.arange(len(world)), j])[order]
+        lowered = np.concatenate([np.zeros(len(world), dtype=bool), np.ones(len(j), dtype=bool)])[order]
+        tight = 0.25 * offset
+        cut = cut_topology(placed, ext[order], on_plane_tol=tight, noise_tol=np.full(len(ext), tight))
+        return *_sample(placed, cut, owner, lowered, topo.flat_planes, chord, segment_length), offset
+
+    for offset in FLAT_FACE_OFFSETS_MM[:-1]:
+        try:
+            return at(offset)
+        except TessellationError:
+            continue  # the next, larger offset
+    return at(FLAT_FACE_OFFSETS_MM[-1])
+
+
+def _sample(mesh, topo, owner, lowered, flat, chord, segment_length):
+    """The dense loops of a cut, as (loop, corner mask) pairs per plane ``owner[e]`` of each cut
+    plane ``e``, the ``lowered`` ones apart per flat plane."""
     pool = VertexPool()
     sampler = RingSampler(mesh, topo, pool, segment_length=segment_length, chord_error=chord)
     annulus = topo.comp_is_annulus
@@ -157,8 +179,8 @@ def _solid_sections(
     rings = sampler.free_loops(np.flatnonzero(free).tolist())
     for li in np.flatnonzero(~free).tolist():
         rings[li] = sampler.pinned_loop(li)
-    on_plane: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in range(n_planes)]
-    below: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {int(k): [] for k in flat}
+    on_plane: list[list[Pair]] = [[] for _ in range(int(owner.max()) + 1 if len(owner) else 0)]
+    below: dict[int, list[Pair]] = {int(k): [] for k in flat}
     xyz = pool.xyz
     for li in sorted(rings):
         ids = rings[li]
