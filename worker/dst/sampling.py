@@ -856,7 +856,9 @@ class RingSampler:
         its largest: a segment is checked again at its quarter points when its midpoint's distance
         is above a quarter of the budget or the midpoint projects outside the chord's middle half.
         Between the three points the largest distance is taken from the parabola through them (a
-        curve whose bend is off-centre peaks between samples: bug24595's 0.028 mm over 0.025).
+        curve whose bend is off-centre peaks between samples: bug24595's 0.028 mm over 0.025), and
+        beyond them from the lines through the outer two (a line running into a small fillet at
+        the segment's end: trj4_k1_top's 0.027).
         """
         ri, sa, sb, pa, pb = pending
         e = self.chord
@@ -997,9 +999,10 @@ class RingSampler:
 
 
 def _parabola_peak(t: np.ndarray, f: np.ndarray, ok: np.ndarray) -> np.ndarray:
-    """Row-wise peak of the parabola through three samples (t, f) (any order of t) where it opens
-    downwards and peaks between them; otherwise 0. Capped at 1.5 times the largest sample (three
-    nearly collinear samples would extrapolate wildly)."""
+    """Row-wise estimate of the largest distance of a segment's curve from its chord, from three
+    samples (t, f) (any order of t): the peak of the parabola through them where it opens downwards
+    and peaks between them (capped at 1.5 times the largest sample: nearly collinear samples would
+    extrapolate wildly), and beyond the outer samples the bound of a concave distance. 0 if none."""
     order = np.argsort(t, axis=1)
     t, f = np.take_along_axis(t, order, axis=1), np.take_along_axis(f, order, axis=1)
     (t1, t2, t3), (f1, f2, f3) = t.T, f.T
@@ -1008,8 +1011,15 @@ def _parabola_peak(t: np.ndarray, f: np.ndarray, ok: np.ndarray) -> np.ndarray:
         a = (d23 - d12) / (t3 - t1)
         ts = 0.5 * (t1 + t2) - d12 / (2.0 * a)  # where the derivative d12 + a (2 t - t1 - t2) vanishes
         peak = f1 + d12 * (ts - t1) + a * (ts - t1) * (ts - t2)
-    good = ok & (a < 0) & (ts > t1) & (ts < t3) & (t2 - t1 > 1e-9) & (t3 - t2 > 1e-9) & np.isfinite(peak)
-    return np.where(good, np.minimum(peak, 1.5 * f.max(axis=1)), 0.0)
+        # beyond the outer samples, a concave distance (a convex arc) stays under the line through the
+        # two samples on that side: a bend at the segment's end (a line running into a small fillet)
+        # rises there after three samples on the straight part
+        start = np.where(f1 > f2, f1 + (f1 - f2) * np.clip(t1, 0.0, 1.0) / (t2 - t1), 0.0)
+        end = np.where(f3 > f2, f3 + (f3 - f2) * np.clip(1.0 - t3, 0.0, 1.0) / (t3 - t2), 0.0)
+    spaced = (t2 - t1 > 1e-9) & (t3 - t2 > 1e-9)
+    good = ok & (a < 0) & (ts > t1) & (ts < t3) & spaced & np.isfinite(peak)
+    out = np.where(good, np.minimum(peak, 1.5 * f.max(axis=1)), 0.0)
+    return np.maximum(out, np.where(ok & spaced, np.maximum(start, end), 0.0))
 
 
 def _chord_position(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
