@@ -48,6 +48,8 @@ SLOW = {
     "bug32314_corrupted.stp",
     "bug28366_fuselage.stp",
     "as1_motor.step",
+    "trj7_b1-ec-214.stp",
+    "trj3_s1-al-214.stp",
 }
 
 # Files that hold closed solids but on which the core does not yet produce a mesh: kept visible as
