@@ -36,10 +36,13 @@ def build_part(kind: str, **kw):
         return (outer - inner).rotate(bd.Axis.X, kw.get("tilt_deg", 30.0))
     if kind == "step_box":
         # A 20 x 20 x 4.1 block with a 10 x 10 x 3 block on it: the step's flat face at z = 4.1 lies
-        # exactly on the middle-mode plane 0.1 + 0.2 * 20 for h = 0.2.
-        base = bd.Box(20, 20, 4.1, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MIN))
-        top = bd.Pos(0, 0, 4.1) * bd.Box(10, 10, 3, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MIN))
-        return base + top
+        # exactly on the middle-mode plane 0.1 + 0.2 * 20 for h = 0.2. ``overhang``: the blocks'
+        # sizes swapped (the wide one on top, the flat face facing down).
+        lower, upper = (10, 20) if kw.get("overhang") else (20, 10)
+        align = (bd.Align.CENTER, bd.Align.CENTER, bd.Align.MIN)
+        return bd.Box(lower, lower, 4.1, align=align) + bd.Pos(0, 0, 4.1) * bd.Box(
+            upper, upper, 3, align=align
+        )
     if kind == "tangent_features":
         # A block with a horizontal hole whose bottom (z = 0.1) and top (z = 4.1) lines lie on the
         # middle-mode planes for h = 0.2, and a sphere whose top (z = 8.1) touches plane 40.

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import TypeVar
 
 import numpy as np
 from OCP.BRepAdaptor import BRepAdaptor_Curve
@@ -45,6 +46,7 @@ RETRY_DEFLECTIONS = (1.0, 0.7, 1.4, 2.0)
 # vertex 0.1 um below a face it bounds) can put a crossing where a tiny offset has no exact point.
 FLAT_FACE_OFFSETS_MM = (4e-9, 1e-7, 2e-6, 3e-5)
 Pair = tuple[np.ndarray, np.ndarray]  # a closed loop (k, 2) and its corner mask (k,)
+T = TypeVar("T")
 
 
 @dataclass
@@ -161,12 +163,18 @@ def _solid_sections(
         cut = cut_topology(placed, ext[order], on_plane_tol=tight, noise_tol=np.full(len(ext), tight))
         return *_sample(placed, cut, owner, lowered, topo.flat_planes, chord, segment_length), offset
 
-    for offset in FLAT_FACE_OFFSETS_MM[:-1]:
+    return _first_that_works(at, FLAT_FACE_OFFSETS_MM)
+
+
+def _first_that_works(fn: Callable[[float], T], values: tuple[float, ...]) -> T:
+    """``fn`` of the first of ``values`` for which it raises no TessellationError (the last one's
+    error is raised)."""
+    for value in values[:-1]:
         try:
-            return at(offset)
+            return fn(value)
         except TessellationError:
-            continue  # the next, larger offset
-    return at(FLAT_FACE_OFFSETS_MM[-1])
+            continue  # the next value
+    return fn(values[-1])
 
 
 def _sample(mesh, topo, owner, lowered, flat, chord, segment_length):
@@ -223,13 +231,9 @@ def _reference_topomesh(solid, deflection: float, diag: float):
     """The solid's topology mesh at ``deflection``, or, where BRepMesh's mesh there is not a closed
     manifold (it depends on the deflection: 11752.stp at half the DST build's), at the next of
     ``RETRY_DEFLECTIONS`` times it that is. Returns the mesh and the deflection used."""
-    for factor in RETRY_DEFLECTIONS[:-1]:
-        try:
-            return _topomesh(solid, deflection * factor, diag), deflection * factor
-        except TessellationError:
-            continue  # the next deflection
-    last = deflection * RETRY_DEFLECTIONS[-1]
-    return _topomesh(solid, last, diag), last
+    return _first_that_works(
+        lambda d: (_topomesh(solid, d, diag), d), tuple(deflection * f for f in RETRY_DEFLECTIONS)
+    )
 
 
 def _topomesh(solid, deflection: float, diag: float):

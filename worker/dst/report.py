@@ -136,6 +136,11 @@ def _occt_side(part: LoadedPart, baselines: Sequence[str], parallel: bool) -> Oc
     return OcctSide(out, xy_box(part), part.volume_mm3)
 
 
+def _start_occt_side(tasks: TaskGroup, part: LoadedPart, baselines: Sequence[str]) -> Task:
+    """``_occt_side`` as a task of ``tasks`` (OCCT on one thread in a forked helper)."""
+    return tasks.submit(_occt_side, part, baselines, not tasks.forked)
+
+
 def _occt_result(side: Task) -> OcctSide:
     return _helper_result(
         side,
@@ -313,8 +318,17 @@ def build_report(
     report = progress or (lambda stage, frac: None)
     baselines = parse_baselines(list(baselines))
     with TaskGroup(forked=processes != 1, limit=processes) as tasks:
-        side = tasks.submit(_occt_side, part, baselines, not tasks.forked)
-        return _build_report(part, params, file_name, dst, meshes, baselines, tasks, side, report)
+        return _build_report(
+            part,
+            params,
+            file_name,
+            dst,
+            meshes,
+            baselines,
+            tasks,
+            _start_occt_side(tasks, part, baselines),
+            report,
+        )
 
 
 def slice_and_report(
@@ -337,12 +351,13 @@ def slice_and_report(
     report("reading STEP", 0.0)
     part = read_step(path)
     with TaskGroup(forked=processes != 1, limit=processes) as tasks:
-        side = tasks.submit(_occt_side, part, baselines, not tasks.forked) if tasks.forked else None
+        # forked, beside the build; inline (nothing to overlap), after it
+        side = _start_occt_side(tasks, part, baselines) if tasks.forked else None
         mesh = slice_part(part, params, progress=lambda s, f: report(s, 0.5 * f), t0=t0)
         if on_mesh is not None:
             on_mesh(mesh)
         if side is None:
-            side = tasks.submit(_occt_side, part, baselines, not tasks.forked)
+            side = _start_occt_side(tasks, part, baselines)
         out = _build_report(
             part,
             params,
@@ -390,12 +405,8 @@ def _build_report(
     )
     heights = ref.heights
     planes_z = plan_planes(height=ref.zmax - ref.zmin, params=params).z if dst is None else dst.planes.z
-    ref_seg, ref_plane = loops_to_segments(ref.loops)
-    curv = span_curvatures(ref.loops, chord=chord, corners=ref.corners)
-    ref_set = SegmentSet(ref_seg, ref_plane, curv=curv, nxt=loop_successors(ref.loops), chord=chord)
-    ref_perimeter = np.bincount(ref_plane, weights=curve_lengths(ref_seg, curv), minlength=len(heights))
     n_planes = len(heights)
-    loops_exact = np.array([len(ls) for ls in ref.loops], dtype=np.int64)
+    ref_set, ref_perimeter, loops_exact = _reference_segments(ref.loops, ref.corners, chord, n_planes)
     below = _below_reference(ref, chord) if ref.flat_planes else None
     ref_seconds = time.perf_counter() - t
 
@@ -416,7 +427,7 @@ def _build_report(
     # Measured in helper processes, each mesh in plane ranges of about equal work so that the
     # helpers finish together, largest first; one k-d tree thread each when they run side by side.
     workers = 1 if tasks.forked and tasks.limit > 1 else -1
-    ref_per_plane = np.bincount(ref_plane, minlength=n_planes)
+    ref_per_plane = np.bincount(ref_set.seg_plane, minlength=n_planes)
     measuring: dict[int, list[tuple[int, Task]]] = {}  # per mesh: (first plane, task)
 
     def start(ms: list[MeshInput]) -> None:
@@ -551,20 +562,31 @@ class _BelowReference:
     loops: np.ndarray  # (P,) loops just below the face (0 elsewhere)
 
 
-def _below_reference(ref, chord: float) -> _BelowReference:
-    n = len(ref.heights)
-    loops = [ref.below_loops.get(j, []) for j in range(n)]
-    corners = [ref.below_corners.get(j, []) for j in range(n)]
+def _reference_segments(
+    loops: list[list[np.ndarray]], corners: list[list[np.ndarray]], chord: float, n_planes: int
+) -> tuple[SegmentSet, np.ndarray, np.ndarray]:
+    """Exact loops per plane as the curves distances are measured to: their segment set (each span
+    the curve through its ends), the perimeter and the loop count of each plane."""
     seg, plane = loops_to_segments(loops)
     curv = span_curvatures(loops, chord=chord, corners=corners)
+    return (
+        SegmentSet(seg, plane, curv=curv, nxt=loop_successors(loops), chord=chord),
+        np.bincount(plane, weights=curve_lengths(seg, curv), minlength=n_planes),
+        np.array([len(ls) for ls in loops], dtype=np.int64),
+    )
+
+
+def _below_reference(ref, chord: float) -> _BelowReference:
+    n = len(ref.heights)
+    segments, perimeter, loops = _reference_segments(
+        [ref.below_loops.get(j, []) for j in range(n)],
+        [ref.below_corners.get(j, []) for j in range(n)],
+        chord,
+        n,
+    )
     flat = np.zeros(n, dtype=bool)
     flat[ref.flat_planes] = True
-    return _BelowReference(
-        flat=flat,
-        segments=SegmentSet(seg, plane, curv=curv, nxt=loop_successors(loops), chord=chord),
-        perimeter=np.bincount(plane, weights=curve_lengths(seg, curv), minlength=n),
-        loops=np.array([len(ls) for ls in loops], dtype=np.int64),
-    )
+    return _BelowReference(flat=flat, segments=segments, perimeter=perimeter, loops=loops)
 
 
 def _badness(met: LayerMetrics) -> np.ndarray:

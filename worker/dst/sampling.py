@@ -1031,11 +1031,8 @@ def _chord_position(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise distance (mm) from points ``p`` to segments ``a``-``b``; all (n, 3)."""
-    ab = b - a
-    denom = np.einsum("ij,ij->i", ab, ab)
-    t = np.einsum("ij,ij->i", p - a, ab) / np.where(denom > 0, denom, 1.0)
-    t = np.clip(t, 0.0, 1.0)
-    return np.linalg.norm(p - (a + t[:, None] * ab), axis=1)
+    t = np.clip(_chord_position(p, a, b), 0.0, 1.0)
+    return np.linalg.norm(p - (a + t[:, None] * (b - a)), axis=1)
 
 
 def _dedupe_cyclic(vids: list[int], pool: VertexPool) -> list[int]:

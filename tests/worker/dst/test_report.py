@@ -142,25 +142,15 @@ def test_missing_layers_are_reported_not_crashed(hemisphere, tmp_path):
     assert any("box:" in w and "has none" in w for w in report.warnings)
 
 
-def _stepped(wide_below: bool):
-    """A 20 x 20 block and a 10 x 10 block meeting in a flat face at z = 4.1 (middle-mode plane 20
-    for h = 0.2): the wide block below (a step up) or above (an overhang)."""
-    import build123d as bd
-
-    align = (bd.Align.CENTER, bd.Align.CENTER, bd.Align.MIN)
-    lower, upper = (20, 10) if wide_below else (10, 20)
-    return bd.Box(lower, lower, 4.1, align=align) + bd.Pos(0, 0, 4.1) * bd.Box(upper, upper, 3, align=align)
-
-
 @pytest.mark.parametrize("wide_below", [True, False], ids=["step", "overhang"])
 def test_flat_face_plane_is_measured_against_the_outline_each_cut_keeps(tmp_path, wide_below):
     """A plane through a flat face has two exact outlines (just above and just below the face); each
     mesh is measured against the one its cut gives. DST keeps the outline below, OCCT's mesh cut
     there (a vertex on the plane counting as below) the one above: both exact, neither counted
     off by the blocks' half-width difference (7.07 mm at the corners)."""
-    from tests.conftest import write_step
+    from tests.conftest import build_part, write_step
 
-    path = write_step(_stepped(wide_below), tmp_path / "stepped.step")
+    path = write_step(build_part("step_box", overhang=not wide_below), tmp_path / "stepped.step")
     params = SliceParams(layer_height=0.2)
     mesh = slice_step(path, params)
     assert mesh.stats["flat_planes"] == [20]
@@ -199,9 +189,9 @@ def test_flat_face_outline_is_the_limit_at_a_tangent_fillet(tmp_path):
     mesh, whose cut there is that tangent line, must be measured within the reference's resolution."""
     import build123d as bd
 
-    from tests.conftest import write_step
+    from tests.conftest import build_part, write_step
 
-    part = _stepped(True)
+    part = build_part("step_box")
     inner = [
         e
         for e in part.edges()
@@ -224,10 +214,10 @@ def test_flat_face_with_a_vertex_off_its_plane_by_the_file_tolerance(tmp_path, m
     trj7_b1-ec-214) still belongs to the flat face: it is put on the plane with the face, so the
     sections just below and above the face are found (a plane moved below the face used to cut the
     face's triangles there, where its surface has no point: a tessellation error)."""
-    from tests.conftest import write_step
+    from tests.conftest import build_part, write_step
     from worker.dst import reference
 
-    path = write_step(_stepped(True), tmp_path / "stepped.step")
+    path = write_step(build_part("step_box"), tmp_path / "stepped.step")
     part = read_step(path)
     build = reference._topomesh
     moved = []
@@ -257,11 +247,11 @@ def test_flat_face_with_a_vertex_off_its_plane_by_the_file_tolerance(tmp_path, m
 def test_reference_topology_retries_another_deflection(tmp_path, monkeypatch):
     """BRepMesh's mesh is not a closed manifold at some deflections on some files (11752.stp at the
     reference's): the reference then takes the next deflection that works, and says which."""
-    from tests.conftest import write_step
+    from tests.conftest import build_part, write_step
     from worker.dst import reference
     from worker.dst.errors import TessellationError
 
-    part = read_step(write_step(_stepped(True), tmp_path / "stepped.step"))
+    part = read_step(write_step(build_part("step_box"), tmp_path / "stepped.step"))
     build, tried = reference._topomesh, []
 
     def picky(solid, deflection, diag):
