@@ -1,6 +1,8 @@
 """Benchmark: DST against OCCT's conventional mesh at PrusaSlicer's import setting, same run.
 
-Each measurement runs in a fresh spawned process. Seconds are the wall time of the work (STEP read
+Each measurement runs in a fresh spawned process, ``--repeat`` rounds per part (conventional, DST
+with its report, job, in turn: a slow spell of a shared machine hits a whole round), and the tables
+show medians; a ratio is the median of the rounds' own ratios. Seconds are the wall time of the work (STEP read
 included for both), not of the process start-up; memory ("MB") is the peak resident memory of the
 work above what the process held after its imports (Linux: the peak is reset after the imports),
 "peak MB" the process's whole peak, imports (OCCT, scipy: ~460 MB) included. Ratios are DST /
@@ -12,14 +14,18 @@ h = 0.2 mm within 3x the conventional mesh's time; memory growing with the part,
 Target (issue 3): the deviation report with the three default baselines within 3x the DST build time
 (second table: the report's seconds, of which the exact reference and building the baselines; and
 the job's, DST and report together as ``slice_and_report`` runs them, the report's OCCT work started
-before the DST build).
+before the DST build). The report's CPU seconds (its helper processes included) against the DST
+build's show its work independently of the machine's speed: on c cores the report cannot take less
+than CPU / c seconds, the "floor" column.
 """
 
 from __future__ import annotations
 
 import argparse
 import multiprocessing as mp
+import os
 import resource
+import statistics
 import sys
 import tempfile
 import time
@@ -38,11 +44,12 @@ def _dst(path: str, layer: float, q, with_report: bool = True) -> None:
 
     params = SliceParams(layer_height=layer)
     base = _reset_peak()
-    t = time.perf_counter()
+    cpu, t = _cpu_s(), time.perf_counter()
     mesh = slice_step(path, params)
     sec = time.perf_counter() - t
     out = {
         "seconds": sec,
+        "cpu_s": _cpu_s() - cpu,
         "triangles": len(mesh.triangles),
         "planes": len(mesh.planes),
         "rss_mb": _rss_mb(),
@@ -51,10 +58,11 @@ def _dst(path: str, layer: float, q, with_report: bool = True) -> None:
     }
     if with_report:
         base = _reset_peak()
-        t = time.perf_counter()
+        cpu, t = _cpu_s(), time.perf_counter()
         report = build_report(mesh.part, params, file_name=path, dst=mesh, baselines=DEFAULT_BASELINES)
         out.update(
             report_seconds=time.perf_counter() - t,
+            report_cpu_s=_cpu_s() - cpu,
             reference_seconds=report.reference.seconds,
             baseline_seconds=sum(m.seconds or 0.0 for m in report.meshes if m.kind == "baseline"),
             report_work_mb=_peak_mb() - base,
@@ -103,6 +111,12 @@ def _conventional(path: str, layer: float, q) -> None:
     q.put({"seconds": sec, "triangles": n, "rss_mb": _rss_mb(), "work_mb": work})
 
 
+def _cpu_s() -> float:
+    """CPU seconds (user + system) of this process and of its children that have ended."""
+    own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+
+
 def _rss_mb() -> float:
     """Peak resident memory of this process so far (imports included), MB."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
@@ -143,10 +157,21 @@ def hemisphere_step(tmp: Path) -> Path:
     return write_step(build_part("hemisphere", radius=20.0), tmp / "hemisphere_R20_bspline.step")
 
 
+def _median(values) -> float:
+    return float(statistics.median(values))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--layer-height", type=float, default=0.2)
     ap.add_argument("--parts", nargs="*", help="extra STEP files to measure")
+    ap.add_argument(
+        "--repeat",
+        type=int,
+        default=3,
+        help="rounds per part (each round: conventional, DST + report, job, in fresh processes); "
+        "the tables show medians, ratios as the median of each round's ratio",
+    )
     ap.add_argument(
         "--no-scaling", dest="scaling", action="store_false", help="skip the memory-against-planes table"
     )
@@ -157,48 +182,76 @@ def main() -> None:
         if (CORPUS / rel).is_file():
             parts.append((rel, CORPUS / rel))
     parts += [(p, Path(p)) for p in args.parts or []]
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
     head = (
         f"{'part':32} {'DST s':>7} {'conv s':>7} {'ratio':>6} {'DST tris':>9} {'conv tris':>9} "
         f"{'DST MB':>7} {'conv MB':>7} {'peak MB':>7}"
     )
-    print("Seconds and memory of the work (imports excluded): DST against OCCT's conventional mesh")
+    print(f"Medians of {args.repeat} rounds; seconds and memory of the work (imports excluded)")
+    print("DST against OCCT's conventional mesh")
     print(head)
     print("-" * len(head))
     reports = []
     for name, path in parts:
-        conv = measure(_conventional, str(path), args.layer_height)
-        dst = measure(_dst, str(path), args.layer_height)
-        dst["job"] = measure(_job, str(path), args.layer_height)
-        reports.append((name, dst))
+        rounds = []
+        for _ in range(args.repeat):  # interleaved: a slow spell of the machine hits all three
+            conv = measure(_conventional, str(path), args.layer_height)
+            dst = measure(_dst, str(path), args.layer_height)
+            dst["conv"], dst["job"] = conv, measure(_job, str(path), args.layer_height)
+            rounds.append(dst)
+        reports.append((name, rounds))
+        first = rounds[0]
         print(
-            f"{name[:32]:32} {dst['seconds']:7.2f} {conv['seconds']:7.2f} {dst['seconds'] / conv['seconds']:6.2f} "
-            f"{dst['triangles']:9d} {conv['triangles']:9d} {dst['work_mb']:7.0f} {conv['work_mb']:7.0f} "
-            f"{dst['rss_mb']:7.0f}",
+            f"{name[:32]:32} {_median(r['seconds'] for r in rounds):7.2f} "
+            f"{_median(r['conv']['seconds'] for r in rounds):7.2f} "
+            f"{_median(r['seconds'] / r['conv']['seconds'] for r in rounds):6.2f} "
+            f"{first['triangles']:9d} {first['conv']['triangles']:9d} "
+            f"{_median(r['work_mb'] for r in rounds):7.0f} {_median(r['conv']['work_mb'] for r in rounds):7.0f} "
+            f"{_median(r['rss_mb'] for r in rounds):7.0f}",
             flush=True,
         )
-        print(f"{'':32}   DST stages: {dst['stages']}", flush=True)
+        print(f"{'':32}   DST stages (first round): {first['stages']}", flush=True)
+        print(
+            f"{'':32}   rounds: DST s {[round(r['seconds'], 2) for r in rounds]}, "
+            f"conv s {[round(r['conv']['seconds'], 2) for r in rounds]}",
+            flush=True,
+        )
     print()
     print("The deviation report (3 default baselines) against the DST build it measures: run after it")
     print("(report s), and as a job runs both (job s: the baselines' OCCT meshing started before the DST")
-    print("build, in a helper; its added time over the DST build alone, job - DST, against DST)")
+    print("build, in a helper; its added time over the DST build alone, job - DST, against DST).")
+    print(f"CPU: the report's CPU seconds (helpers included) against the DST build's; on {cores} core(s)")
+    print("the report cannot take less than its CPU seconds / cores (floor, against DST's wall time).")
     head = (
         f"{'part':32} {'DST s':>7} {'report s':>9} {'report/DST':>10} {'reference s':>11} "
-        f"{'baselines s':>11} {'MB':>6} {'helper MB':>9} {'job s':>7} {'(job-DST)/DST':>13}"
+        f"{'baselines s':>11} {'CPU/DST CPU':>11} {'floor/DST':>9} {'MB':>6} {'helper MB':>9} "
+        f"{'job s':>7} {'(job-DST)/DST':>13}"
     )
     print(head)
     print("-" * len(head))
-    for name, dst in reports:
+    for name, rounds in reports:
         print(
-            f"{name[:32]:32} {dst['seconds']:7.2f} {dst['report_seconds']:9.2f} "
-            f"{dst['report_seconds'] / dst['seconds']:10.2f} {dst['reference_seconds']:11.2f} "
-            f"{dst['baseline_seconds']:11.2f} {dst['report_work_mb']:6.0f} {dst['helper_mb']:9.0f} "
-            f"{dst['job']['seconds']:7.2f} {(dst['job']['seconds'] - dst['seconds']) / dst['seconds']:13.2f}",
+            f"{name[:32]:32} {_median(r['seconds'] for r in rounds):7.2f} "
+            f"{_median(r['report_seconds'] for r in rounds):9.2f} "
+            f"{_median(r['report_seconds'] / r['seconds'] for r in rounds):10.2f} "
+            f"{_median(r['reference_seconds'] for r in rounds):11.2f} "
+            f"{_median(r['baseline_seconds'] for r in rounds):11.2f} "
+            f"{_median(r['report_cpu_s'] / r['cpu_s'] for r in rounds):11.2f} "
+            f"{_median(r['report_cpu_s'] / cores / r['seconds'] for r in rounds):9.2f} "
+            f"{_median(r['report_work_mb'] for r in rounds):6.0f} {_median(r['helper_mb'] for r in rounds):9.0f} "
+            f"{_median(r['job']['seconds'] for r in rounds):7.2f} "
+            f"{_median((r['job']['seconds'] - r['seconds']) / r['seconds'] for r in rounds):13.2f}",
+            flush=True,
+        )
+        print(
+            f"{'':32}   rounds: report/DST {[round(r['report_seconds'] / r['seconds'], 2) for r in rounds]}, "
+            f"(job-DST)/DST {[round((r['job']['seconds'] - r['seconds']) / r['seconds'], 2) for r in rounds]}",
             flush=True,
         )
     if args.scaling:
         print()
-        print("Memory against plane count: the hemisphere at finer layers (DST build only)")
+        print("Memory against plane count: the hemisphere at finer layers (DST build only, one round)")
         head = f"{'layer mm':>8} {'planes':>7} {'DST s':>7} {'triangles':>10} {'MB':>6} {'MB / 100k triangles':>20}"
         print(head)
         print("-" * len(head))
