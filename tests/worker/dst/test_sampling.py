@@ -1,0 +1,92 @@
+"""The ring sampler's own fallbacks, on a cone whose exact sections are closed-form circles."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from OCP.GeomAbs import GeomAbs_Cone, GeomAbs_Plane
+
+from worker.dst import constants as C
+from worker.dst.pipeline import bbox_diagonal, topo_deflection
+from worker.dst.sampling import RingSampler, VertexPool
+from worker.dst.sections import cut_topology
+from worker.dst.step_io import read_step
+from worker.dst.topomesh import build_topomesh
+
+RADIUS, HEIGHT = 10.0, 20.0  # the conftest cone: base radius 10 at z = 0, apex at z = 20
+Z = 5.0  # the plane: the section is the circle of radius 7.5 about the axis
+R_Z = RADIUS * (1.0 - Z / HEIGHT)
+
+
+@pytest.fixture(scope="module")
+def cone_sampler(tmp_path_factory):
+    from tests.conftest import build_part, write_step
+
+    path = write_step(
+        build_part("cone", radius=RADIUS, height=HEIGHT),
+        tmp_path_factory.mktemp("c") / "cone.step",
+        nurbs=False,
+    )
+    part = read_step(path)
+    diag, _ = bbox_diagonal(part)
+    mesh = build_topomesh(
+        part.solids[0],
+        deflection=topo_deflection(diag),
+        angular=C.TOPO_ANGULAR_RAD,
+        merge_tol=C.MERGE_TOL_REL * diag,
+    )
+    world = np.array([Z])
+    topo = cut_topology(mesh, world, on_plane_tol=C.ON_PLANE_TOL_MM, noise_tol=np.zeros(1))
+    sampler = RingSampler(mesh, topo, VertexPool(), segment_length=1.0, chord_error=0.01)
+    kinds = [f.ad.GetType() for f in mesh.faces]
+    return sampler, kinds.index(GeomAbs_Cone), kinds.index(GeomAbs_Plane)
+
+
+def _on_circle(angle: float) -> np.ndarray:
+    return np.array([R_Z * math.cos(angle), R_Z * math.sin(angle), Z])
+
+
+def test_midpoints_the_seed_path_left_off_their_segment_are_solved_from_the_chord(cone_sampler):
+    """A seed path through a pole of the face's parametrisation (the cone's apex) can put a
+    segment's midpoint next to an end, or find none: the segment would pass the chord check
+    unseen. Such midpoints are solved again from the chord's middle, onto the exact section (the
+    circle, at the chord's middle); one that still cannot be placed (here: the plane does not meet
+    the face named) is counted, not passed silently; a midpoint in its segment's middle and a
+    segment within the chord budget whatever its arc are left as they are."""
+    sampler, cone, base = cone_sampler
+    a0, a1 = 0.3, 1.1  # a 5.8 mm chord of the 7.5 mm circle (sag 0.6 mm)
+    pa, pb = _on_circle(a0), _on_circle(a1)
+    near_end = pa + 0.02 * (pb - pa)  # where a stray seed path left it
+    middle = _on_circle(0.5 * (a0 + a1))
+    short_b = _on_circle(a0 + 0.001)  # a 7.5 um segment: within the 0.01 mm budget as any arc
+    cases = [  # face, midpoint, found, segment end b
+        (cone, near_end, True, pb),
+        (cone, np.full(3, np.nan), False, pb),
+        (base, near_end, True, pb),
+        (cone, middle, True, pb),
+        (cone, pa, True, short_b),
+    ]
+    face = np.array([c[0] for c in cases])
+    mid = np.array([c[1] for c in cases])
+    mid_ok = np.array([c[2] for c in cases])
+    seg_a = np.repeat(pa[None], len(cases), axis=0)
+    seg_b = np.array([c[3] for c in cases])
+    length = np.linalg.norm(seg_b - seg_a, axis=1)
+    before = sampler.stats.unchecked_segments
+    sampler._midpoints_off_the_path(
+        face, np.full(len(cases), Z), np.full(len(cases), 1.0), mid, mid_ok, seg_a, seg_b, length
+    )
+    # the first two: on the exact circle, at the chord's middle (the arc's midpoint)
+    for i in (0, 1):
+        assert mid_ok[i]
+        assert math.hypot(mid[i, 0], mid[i, 1]) == pytest.approx(R_Z, abs=1e-6)
+        assert mid[i, 2] == pytest.approx(Z, abs=C.LEVEL_TOL_MM)
+        assert math.atan2(mid[i, 1], mid[i, 0]) == pytest.approx(0.5 * (a0 + a1), abs=1e-6)
+    # the one on the base face: no point of that face on the plane, counted
+    assert sampler.stats.unchecked_segments == before + 1
+    np.testing.assert_array_equal(mid[2], near_end)
+    # already in the middle, and within the budget: untouched
+    np.testing.assert_array_equal(mid[3], middle)
+    np.testing.assert_array_equal(mid[4], pa)
