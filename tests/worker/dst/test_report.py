@@ -8,6 +8,7 @@ numbers.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -269,6 +270,63 @@ def test_reference_topology_retries_another_deflection(tmp_path, monkeypatch):
     monkeypatch.setattr(reference, "RETRY_DEFLECTIONS", (1.0, 2.0))
     with pytest.raises(TessellationError):
         exact_sections(part, np.array([1.1]), chord=1e-3, segment_length=2.0, deflection=0.01)
+
+
+@pytest.fixture(scope="module")
+def torus(tmp_path_factory):
+    """A torus lying flat (R 15, r 5): two exact circles per plane, radii 15 -/+ sqrt(25 - z^2)."""
+    from tests.conftest import build_part, write_step
+
+    path = write_step(build_part("torus"), tmp_path_factory.mktemp("torus") / "torus.step")
+    params = SliceParams(layer_height=0.2)
+    return path, params, slice_step(path, params)
+
+
+def _gap_warnings(report: Report) -> list[str]:
+    return [w for w in report.warnings if "reference misses part of the section" in w]
+
+
+def test_a_section_the_reference_missed_is_named_not_blamed_on_dst(torus, monkeypatch):
+    """Where the exact reference lacks part of a section (its own topology mesh can pass between a
+    plane and a crest: bug27453 at z = 17.5), DST's ring vertices there lie on the B-rep yet far from
+    the reference: the report says the reference has the gap. Simulated by dropping the inner circle
+    of one plane from the reference: DST's vertex_dev there becomes the distance between the circles,
+    and the warning names that plane and no other. A DST mesh whose ring is moved off the B-rep gets
+    its deviation reported, and no such warning."""
+    import worker.dst.report as report_mod
+
+    path, params, mesh = torus
+    clean = build_report(mesh.part, params, file_name=str(path), dst=mesh, baselines=[])
+    assert not _gap_warnings(clean)
+    j = len(mesh.planes) // 2  # z = 0.1 above the torus's middle: circles of radii ~10 and ~20
+    real = exact_sections
+
+    def missing_inner_circle(*args, **kw):
+        ref = real(*args, **kw)
+        inner = min(range(len(ref.loops[j])), key=lambda k: closed_length(ref.loops[j][k]))
+        del ref.loops[j][inner], ref.corners[j][inner]
+        return ref
+
+    monkeypatch.setattr(report_mod, "exact_sections", missing_inner_circle)
+    gappy = build_report(mesh.part, params, file_name=str(path), dst=mesh, baselines=[])
+    (dst,) = gappy.meshes
+    z = mesh.planes.section_z[j] - 5.0  # the plane's height from the torus's middle
+    assert dst.layers[j].vertex_dev == pytest.approx(2 * math.sqrt(25.0 - z * z), abs=0.01)
+    assert max(layer.vertex_dev for k, layer in enumerate(dst.layers) if k != j) < 1e-5
+    (warning,) = _gap_warnings(gappy)
+    assert f"at 1 plane(s) ({j};" in warning
+    monkeypatch.setattr(report_mod, "exact_sections", real)
+
+    # the ring at plane j pushed 0.05 mm outward: a deviation of the mesh, not a gap of the reference
+    moved = mesh.vertices.copy()
+    ring = mesh.vertex_plane == j
+    moved[ring, :2] *= (1.0 + 0.05 / np.linalg.norm(moved[ring, :2], axis=1))[:, None]
+    off = build_report(
+        mesh.part, params, file_name=str(path), dst=dataclasses.replace(mesh, vertices=moved), baselines=[]
+    )
+    (dst,) = off.meshes
+    assert dst.layers[j].vertex_dev == pytest.approx(0.05, abs=1e-4)
+    assert not _gap_warnings(off)
 
 
 def test_unknown_baseline_is_refused():
