@@ -80,9 +80,9 @@ KNOWN_PLANE_DEVIATIONS: dict[str, str] = {
     "bug27453_165-174_piattello.stp": (
         "z = 17.5: the reference's finer topology mesh misses a 0.14 mm wide sliver 2.5 um below a "
         "horizontal hole's top line (a ridge; OCCT's section and the DST ring have it: the report says "
-        "so, see REFERENCE_GAPS); z = 35.9: the ring's vertex at a sliver's tip lies 0.0066 mm off the "
-        "B-rep (nearest an edge of tolerance 1e-7), beyond the reference's tip: a ring defect, not yet "
-        "understood"
+        "so, see REFERENCE_GAPS); z = 35.9: a ring vertex at a sliver's tip lies 0.0066 mm off the "
+        "B-rep: the crossing of a topology edge inside planar face 271 (between two of its boundary "
+        "nodes) whose root lies outside the face's trim, on the plane's extension (a ring defect)"
     ),
     "bug29241.stp": (
         "z = 266.7 (a flat face on the plane): no exact point beside the face closer than 3e-5 mm to it "
