@@ -81,8 +81,9 @@ KNOWN_PLANE_DEVIATIONS: dict[str, str] = {
         "z = 17.5: the reference's finer topology mesh misses a 0.14 mm wide sliver 2.5 um below a "
         "horizontal hole's top line (a ridge; OCCT's section and the DST ring have it: the report says "
         "so, see REFERENCE_GAPS); z = 35.9: a ring vertex at a sliver's tip lies 0.0066 mm off the "
-        "B-rep: the crossing of a topology edge inside planar face 271 (between two of its boundary "
-        "nodes) whose root lies outside the face's trim, on the plane's extension (a ring defect)"
+        "B-rep: the crossing of a topology edge inside planar face 271, between nodes on two of its "
+        "boundary edges, whose root lies outside the face's trim, on the plane's extension; the two "
+        "edges' own roots, 0.0011 mm apart, are its ring neighbours (a ring defect)"
     ),
     "bug29241.stp": (
         "z = 266.7 (a flat face on the plane): no exact point beside the face closer than 3e-5 mm to it "
