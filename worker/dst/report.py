@@ -59,6 +59,7 @@ from worker.dst.pipeline import (
 from worker.dst.planes import plan_planes
 from worker.dst.reference import closed_length, exact_sections
 from worker.dst.step_io import LoadedPart, read_step
+from worker.dst.topomesh import max_tolerance
 
 REPORT_VERSION = "1.1"  # 1.1: layers carry flat_side (flat faces on planes measured on both sides)
 Progress = Callable[[str, float], None]
@@ -850,12 +851,7 @@ def _on_a_face(part: LoadedPart, p: tuple[float, float, float], tol: float) -> f
         surface = ShapeAnalysis_Surface(BRep_Tool.Surface_s(face))
         u, v = surface.ValueOfUV(q, tol).Coord()
         if surface.Gap() <= tol and FaceEval(BRepAdaptor_Surface(face)).contains(u, v, tol=1e-6):
-            edge_tol = 0.0
-            edges = TopExp_Explorer(face, TopAbs_EDGE)
-            while edges.More():
-                edge_tol = max(edge_tol, BRep_Tool.Tolerance_s(TopoDS.Edge(edges.Current())))
-                edges.Next()
-            return edge_tol
+            return max_tolerance(face, TopAbs_EDGE)
     return None
 
 

@@ -161,7 +161,7 @@ def build_topomesh(solid: TopoDS_Shape, *, deflection: float, angular: float, me
     if len(holes):
         # Open edges: copies of a node that lie farther apart than the merge tolerance but within
         # the B-rep's own vertex tolerance (a sloppy corner in the file). Merge those, there only.
-        remap = _merge_open_nodes(xyz, holes, min(_max_vertex_tolerance(solid), deflection))
+        remap = _merge_open_nodes(xyz, holes, min(max_tolerance(solid), deflection))
         if remap is not None:
             glob = remap[glob]
             tris, tri_uv, tri_face, stray_mask = _drop_degenerate(remap[tris], tri_uv, tri_face, stray_mask)
@@ -238,11 +238,13 @@ def _edges_on_brep(edge_local: list[tuple[int, np.ndarray]], glob: np.ndarray) -
     return edge_of
 
 
-def _max_vertex_tolerance(solid: TopoDS_Shape) -> float:
+def max_tolerance(shape: TopoDS_Shape, kind=TopAbs_VERTEX) -> float:
+    """The largest tolerance of the shape's vertices (``kind`` TopAbs_VERTEX) or edges (TopAbs_EDGE)."""
+    cast = TopoDS.Vertex if kind == TopAbs_VERTEX else TopoDS.Edge
     tol = 0.0
-    exp = TopExp_Explorer(solid, TopAbs_VERTEX)
+    exp = TopExp_Explorer(shape, kind)
     while exp.More():
-        tol = max(tol, BRep_Tool.Tolerance_s(TopoDS.Vertex(exp.Current())))
+        tol = max(tol, BRep_Tool.Tolerance_s(cast(exp.Current())))
         exp.Next()
     return tol
 

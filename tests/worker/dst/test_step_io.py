@@ -85,7 +85,7 @@ def test_corners_joined_by_a_coarse_tolerance_are_split(tmp_path, monkeypatch):
     from worker.dst.errors import TessellationError
     from worker.dst.params import SliceParams
     from worker.dst.pipeline import slice_part
-    from worker.dst.topomesh import _max_vertex_tolerance
+    from worker.dst.topomesh import max_tolerance
 
     path = write_step(_strip_with_joined_corners(), tmp_path / "joined.step", nurbs=False)
     params = SliceParams(layer_height=0.2)
@@ -94,13 +94,13 @@ def test_corners_joined_by_a_coarse_tolerance_are_split(tmp_path, monkeypatch):
     with monkeypatch.context() as m:
         m.setattr(step_io, "split_loose_vertices", lambda solid: None)
         joined = read_step(path)
-        assert _max_vertex_tolerance(joined.solids[0]) > 1.0
+        assert max_tolerance(joined.solids[0]) > 1.0
         with pytest.raises(TessellationError):
             slice_part(joined, params)
 
     part = read_step(path)
     assert any("4 vertex(es)" in w and "up to 1 mm apart" in w for w in part.warnings)
-    assert _max_vertex_tolerance(part.solids[0]) < 1e-3
+    assert max_tolerance(part.solids[0]) < 1e-3
     assert solid_volume(part.solids[0]) == pytest.approx(400.0, rel=1e-9)
     mesh = slice_part(part, params)
     assert_watertight(mesh)
