@@ -2,10 +2,10 @@
 
 Each measurement runs in a fresh spawned process, ``--repeat`` rounds per part (conventional, DST
 with its report, job, in turn: a slow spell of a shared machine hits a whole round), and the tables
-show medians; a ratio is the median of the rounds' own ratios. Seconds are the wall time of the work (STEP read
-included for both), not of the process start-up; memory ("MB") is the peak resident memory of the
-work above what the process held after its imports (Linux: the peak is reset after the imports),
-"peak MB" the process's whole peak, imports (OCCT, scipy: ~460 MB) included. Ratios are DST /
+show medians; a ratio is the median of the rounds' own ratios. Seconds are the wall time of the
+work (STEP read included for both), not of the process start-up; memory ("MB") is the peak resident
+memory of the work above what the process held after its imports (Linux: the peak is reset after
+the imports), "peak MB" the process's whole peak, imports (OCCT, scipy: ~460 MB) included. Ratios are DST /
 conventional. The report's helper processes (forked: they share the parent's pages) are shown by
 their largest peak resident size. A last table shows memory against the plane count.
 
@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import multiprocessing as mp
-import os
 import resource
 import statistics
 import sys
@@ -162,6 +161,8 @@ def _median(values) -> float:
 
 
 def main() -> None:
+    from worker.dst.forked import usable_cpus
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--layer-height", type=float, default=0.2)
     ap.add_argument("--parts", nargs="*", help="extra STEP files to measure")
@@ -182,7 +183,7 @@ def main() -> None:
         if (CORPUS / rel).is_file():
             parts.append((rel, CORPUS / rel))
     parts += [(p, Path(p)) for p in args.parts or []]
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    cores = usable_cpus()
 
     head = (
         f"{'part':32} {'DST s':>7} {'conv s':>7} {'ratio':>6} {'DST tris':>9} {'conv tris':>9} "

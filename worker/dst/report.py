@@ -26,7 +26,7 @@ from OCP.ShapeAnalysis import ShapeAnalysis_Surface
 from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE, TopAbs_REVERSED
 from OCP.TopExp import TopExp_Explorer
 from OCP.TopLoc import TopLoc_Location
-from OCP.TopoDS import TopoDS
+from OCP.TopoDS import TopoDS, TopoDS_Face
 from pydantic import BaseModel, ConfigDict, Field
 
 from worker.dst.baselines import BASELINE_PRESETS, DEFAULT_BASELINES, Preset, parse_baselines
@@ -805,6 +805,7 @@ def _reference_gaps(
     cut = cut_mesh(v, tr, heights[js])
     plane = js[cut.vertex_plane]
     d = ref_set.distance(cut.vertices, plane)
+    faces = _faces_with_boxes(part)
     gaps = []
     for k, j in enumerate(js.tolist()):
         mine = np.flatnonzero(cut.vertex_plane == k)
@@ -815,7 +816,7 @@ def _reference_gaps(
         p = (float(x), float(y), float(zmin + heights[j]))
         # the vertex as its STL holds it: float32, a few ulps of its largest coordinate off the B-rep
         tol = 4.0 * float(np.spacing(np.float32(max(abs(c) for c in p)))) + 1e-7
-        face_tol = _on_a_face(part, p, tol)
+        face_tol = _on_a_face(faces, p, tol)
         # farther from the reference than the face's own edges are from it (the file's tolerance):
         # in a file whose faces and edges disagree, both may be on "the B-rep" and still differ
         if face_tol is not None and d[far] > face_tol:
@@ -834,18 +835,29 @@ def _reference_gaps(
     )
 
 
-def _on_a_face(part: LoadedPart, p: tuple[float, float, float], tol: float) -> float | None:
-    """If ``p`` lies within ``tol`` of a face's surface, inside that face's trim: the largest
-    tolerance of that face's edges (how far its boundary may be from its neighbours'); else None. (A
-    point on an edge its faces do not meet, in a file with large edge tolerances, is not on a face.)"""
-    q = gp_Pnt(*p)
+def _faces_with_boxes(part: LoadedPart) -> list[tuple[TopoDS_Face, Bnd_Box]]:
+    """The part's faces, each with its box grown by 0.001 mm (more than any point's float32
+    rounding ``_on_a_face`` allows): a filter, the projection decides."""
+    out = []
     exp = TopExp_Explorer(part.compound, TopAbs_FACE)
     while exp.More():
         face = TopoDS.Face(exp.Current())
         exp.Next()
         box = Bnd_Box()
         BRepBndLib.Add_s(face, box, False)
-        box.Enlarge(tol)
+        box.Enlarge(1e-3)
+        out.append((face, box))
+    return out
+
+
+def _on_a_face(
+    faces: list[tuple[TopoDS_Face, Bnd_Box]], p: tuple[float, float, float], tol: float
+) -> float | None:
+    """If ``p`` lies within ``tol`` of a face's surface, inside that face's trim: the largest
+    tolerance of that face's edges (how far its boundary may be from its neighbours'); else None. (A
+    point on an edge its faces do not meet, in a file with large edge tolerances, is not on a face.)"""
+    q = gp_Pnt(*p)
+    for face, box in faces:
         if box.IsOut(q):
             continue
         surface = ShapeAnalysis_Surface(BRep_Tool.Surface_s(face))
