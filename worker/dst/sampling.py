@@ -126,6 +126,9 @@ class SamplingStats:
     kink_corners: int = 0  # corners placed where a section crosses a C0 line inside a face
     quarter_checks: int = 0  # segments also checked at their quarter points (see _quarter_sags)
     unchecked_segments: int = 0  # segments whose midpoint could not be placed (see _midpoints_off_the_path)
+    off_trim_crossings: int = (
+        0  # crossings whose root lay beyond their face's trim, dropped (see pinned_loop)
+    )
     max_gap_mm: float = 0.0
     max_gap_at: str = ""
 
@@ -175,6 +178,12 @@ class RingSampler:
         self.stats = SamplingStats()
         self.node_vid: dict[int, int] = {}
         self.cross_vid: dict[int, int] = {}
+        # crossings whose root on their face lies beyond the face's trim (on the surface's extension,
+        # not on the B-rep): see pinned_loop
+        self.off_trim: set[int] = set()
+        self._on_brep_edge = np.zeros(mesh.n_nodes, dtype=bool)  # nodes on a B-rep edge
+        if mesh.edge_of:
+            self._on_brep_edge[np.fromiter((n for key in mesh.edge_of for n in key), dtype=np.int64)] = True
         self.subdiv: dict[int, list[int]] = {}  # start crossing of a pinned segment -> inner vertex ids
         # topology edges lying in a plane (both ends are nodes on it) whose ring segment was
         # subdivided: (a, b) with a < b -> inner vertex ids from a to b
@@ -246,6 +255,12 @@ class RingSampler:
         face = int(mesh.tri_face[t])
         try:
             x, y, _, ur, vr = mesh.faces[face].root_on_uv_segment(ua, va, ub, vb, zc)
+            # Between nodes on the face's boundary, the root can lie beyond the trim, where the
+            # face is narrower than its topology triangle (a sliver's tip): not on the B-rep.
+            if (self._on_brep_edge[a] or self._on_brep_edge[b]) and not mesh.faces[face].contains(
+                ur, vr, tol=TRIM_TOL_MM
+            ):
+                self.off_trim.add(c)
             near = topo.cross_xyz[c]
             d_root = math.hypot(x - near[0], y - near[1])
             if d_root > SUSPECT_DEFLECTIONS * mesh.deflection:
@@ -272,6 +287,7 @@ class RingSampler:
                         pu, pv, tol=TRIM_TOL_MM
                     ):
                         x, y = px, py
+                        self.off_trim.discard(c)
                         self.stats.reordered_crossings += 1
         except ExactFailure:
             # The surface at a node's (u, v) can differ from the node (an edge point) by the file's
@@ -425,11 +441,13 @@ class RingSampler:
         faces = self.mesh.tri_face[topo.seg_tri[cross]]
         corner = topo.cross_is_corner[cross] | (faces != np.roll(faces, 1))
         vids = [self.crossing(c) for c in cl]
-        self.corner_vids.update(v for v, k in zip(vids, corner.tolist(), strict=True) if k)
         # per crossing, at once: its successor's position in the loop, the exact segment length, and
         # how far the exact point moved from the topology crossing
         pos = {c: i for i, c in enumerate(cl)}
         nxt_pos = np.array([pos[int(c)] for c in topo.succ[cross].tolist()], dtype=np.int64)
+        if self.off_trim:
+            self._drop_off_trim(cl, vids, nxt_pos)
+        self.corner_vids.update(v for v, k in zip(vids, corner.tolist(), strict=True) if k)
         exact = self.pool.xyz[vids]
         seg_d = np.linalg.norm(exact[nxt_pos] - exact, axis=1).tolist()
         gap = np.linalg.norm(exact - topo.cross_xyz[cross], axis=1)
@@ -441,6 +459,9 @@ class RingSampler:
             if c in self.subdiv:
                 continue
             k = int(nxt_pos[i])
+            if vids[i] == vids[k] and (c in self.off_trim or cl[k] in self.off_trim):  # _drop_off_trim
+                self.subdiv[c] = []
+                continue
             nxt = cl[k]
             na, nb = int(topo.cross_node[c]), int(topo.cross_node[nxt])
             key = (min(na, nb), max(na, nb)) if na >= 0 and nb >= 0 and na != nb else None
@@ -491,6 +512,33 @@ class RingSampler:
             out.append(self.crossing(c))
             out.extend(self.subdiv[c])
         return _dedupe_cyclic(out, self.pool)
+
+    def _drop_off_trim(self, cl: list[int], vids: list[int], nxt_pos: np.ndarray) -> None:
+        """Drop (in place, and for every triangle that uses it) each crossing of this loop whose root
+        lies beyond its face's trim: it becomes the vertex of the nearer of the ring neighbours that
+        bracket it (an edge collapse: the triangles between the two vanish, the others keep the mesh
+        closed). Such a root lies on the surface's extension, not on the B-rep; the crossing's
+        topology edge is inside one face, so its neighbours' segment runs across that face, and is
+        sampled there like any other. (bug27453 at z = 35.9: a root 0.0066 mm off the B-rep between
+        the roots of a sliver's two boundary edges, 0.0011 mm apart.)"""
+        n = len(cl)
+        off = np.array([c in self.off_trim and self.topo.cross_node[c] < 0 for c in cl], dtype=bool)
+        if not off.any() or off.all():
+            return
+        prev_pos = np.empty(n, dtype=np.int64)
+        prev_pos[nxt_pos] = np.arange(n)
+        xyz = self.pool.xyz
+        for i in np.flatnonzero(off).tolist():
+            p = q = i
+            while off[p]:
+                p = int(prev_pos[p])
+            while off[q]:
+                q = int(nxt_pos[q])
+            near = self.topo.cross_xyz[cl[i]]
+            a, b = vids[p], vids[q]
+            keep = a if np.linalg.norm(xyz[a] - near) <= np.linalg.norm(xyz[b] - near) else b
+            self.cross_vid[cl[i]] = vids[i] = keep
+            self.stats.off_trim_crossings += 1
 
     def pinned_segment(self, c: int) -> list[int]:
         """Inner vertices of the pinned segment starting at crossing ``c`` (after ``pinned_loop``)."""

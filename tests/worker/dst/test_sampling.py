@@ -90,3 +90,36 @@ def test_midpoints_the_seed_path_left_off_their_segment_are_solved_from_the_chor
     # already in the middle, and within the budget: untouched
     np.testing.assert_array_equal(mid[3], middle)
     np.testing.assert_array_equal(mid[4], pa)
+
+
+def test_a_crossing_whose_root_lies_beyond_its_face_is_dropped_from_the_ring(tmp_path):
+    """A thin curved face (the end of a tube 0.002 mm thick: an annulus on the plane y = -5) has
+    topology triangles whose inner edges, chords from one circle to the other, leave the face: the
+    root of such an edge at a plane lies on the plane's extension inside the hole, off the B-rep
+    (0.0128 and 0.039 mm at z = 2.3 and 22.1 before the fix). It is dropped onto a ring neighbour:
+    every vertex of the mesh on the end face lies on the annulus (between its two circles), and the
+    mesh stays closed."""
+    from build123d import Align, Box, Cylinder, Pos, Rot
+
+    from tests.conftest import write_step
+    from worker.dst.meshops import edge_defects
+    from worker.dst.params import SliceParams
+    from worker.dst.pipeline import slice_step
+
+    r_in, thick, axis_z = 10.0, 0.002, 12.13
+    block = Box(30, 10, 30, align=(Align.CENTER, Align.MIN, Align.MIN))
+    tube_end = Pos(0, -2.5, axis_z) * Rot(90, 0, 0) * Cylinder(r_in + thick, 5)  # y from -5 to 0
+    hole = Pos(0, 0, axis_z) * Rot(90, 0, 0) * Cylinder(r_in, 30)
+    path = write_step(block + tube_end - hole, tmp_path / "tube.step", nurbs=False)
+    mesh = slice_step(path, SliceParams(layer_height=0.2))
+
+    open_e, dup = edge_defects(mesh.triangles, len(mesh.vertices))
+    assert open_e == 0 and dup == 0
+    v = mesh.vertices[np.unique(mesh.triangles)]
+    z = v[:, 2] + mesh.z_offset
+    end = np.abs(v[:, 1] + 5.0) < 1e-7
+    r = np.hypot(v[end, 0], z[end] - axis_z)
+    assert end.sum() > 100
+    assert r.min() > r_in - 1e-6, r.min() - r_in
+    assert r.max() < r_in + thick + 1e-6, r.max() - r_in - thick
+    assert mesh.stats["off_trim_crossings"] >= 2  # dropped, and counted
