@@ -86,6 +86,13 @@ def build_part(kind: str, **kw):
         cyl = bd.Pos(-2, 0, top - 3.0) * bd.Cylinder(3.0, 20, rotation=(0, 90, 0))
         below = bd.Box(60, 60, 10, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MAX))
         return plate + post + (cyl - below)
+    if kind == "flat_torus":
+        # A torus (R 10, r 2, axis vertical) on a plate, the top circle of its tube ``clearance`` mm
+        # above the middle-mode plane 4.1 (h = 0.2), and a taller 2 x 2 post in a corner.
+        top = 4.1 + kw["clearance"]
+        plate = bd.Box(30, 30, 1, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MIN))
+        post = bd.Pos(13, 13, 0) * bd.Box(2, 2, 8, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MIN))
+        return plate + post + bd.Pos(0, 0, top - 2.0) * bd.Torus(10.0, 2.0)
     if kind == "half_torus":
         return _half_torus(kw.get("major", 4.0), kw.get("minor", 2.336), kw.get("seam", 0.1))
     raise ValueError(kind)

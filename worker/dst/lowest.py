@@ -76,14 +76,14 @@ def _face_extreme(
     corners = mesh.tris[sel].ravel()
     uvs = mesh.tri_uv[sel].reshape(-1, 2)
     k = int(np.argmin(sign * mesh.xyz[corners, 2]))
-    u, v = _face_optimum(fe, uvs[k], sign)
+    u, v = face_optimum(fe, uvs[k], sign)
     if not fe.contains(u, v):
         return []
     p = np.array(fe.point(u, v))
     return [(sign * p[2], p)]
 
 
-def _face_optimum(fe, uv0: np.ndarray, sign: float) -> tuple[float, float]:
+def face_optimum(fe, uv0: np.ndarray, sign: float) -> tuple[float, float]:
     """(u, v) of the face's lowest (sign=+1) or highest (sign=-1) point reached from ``uv0`` by bounded
     L-BFGS on the untrimmed surface (the caller checks the trim)."""
 
@@ -130,7 +130,7 @@ def snap_local_extremes(mesh: TopoMesh, planes: np.ndarray) -> int:
     maximum found from its (u, v) (likewise for minima), if that lies inside the trimmed face and
     within the node's fan; a node on a B-rep edge is moved onto the edge's extreme between its two
     neighbours along it (the top of a tilted circular rim). Ridges (a line of maxima inside a face)
-    are not handled: a ridge gets one exact node, so its loop is found, but only around that node.
+    get a row of nodes from ``ridges.add_ridge_rows``, called after this.
     """
     planes = np.sort(np.asarray(planes, dtype=np.float64))
     if not len(planes):
@@ -173,7 +173,7 @@ def _snap_node(mesh: TopoMesh, node: int, sign: float) -> int:
         _move_node(mesh, node, p)
         return 1
     fe = mesh.faces[int(faces[0])]
-    u, v = _face_optimum(fe, mesh.tri_uv[tri[0], corner[0]], sign)
+    u, v = face_optimum(fe, mesh.tri_uv[tri[0], corner[0]], sign)
     p = np.array(fe.point(u, v))
     if sign * p[2] >= sign * old[2] or np.linalg.norm(p - old) > reach or not fe.contains(u, v):
         return 0

@@ -19,6 +19,7 @@ from worker.dst.lowest import snap_extremes, snap_local_extremes
 from worker.dst.meshops import edge_defects, signed_volume
 from worker.dst.params import SliceParams
 from worker.dst.planes import PlanePlan, plan_planes
+from worker.dst.ridges import add_ridge_rows
 from worker.dst.sampling import RingSampler, SamplingStats, VertexPool
 from worker.dst.sections import cut_topology
 from worker.dst.step_io import LoadedPart, heal_wires, read_step
@@ -142,6 +143,7 @@ def slice_part(
     planes = plan_planes(height=height, params=params)
     world = zmin + planes.section_z
     local_extremes = sum(snap_local_extremes(mesh, world) for mesh in meshes)
+    ridge_nodes = sum(add_ridge_rows(mesh, world) for mesh in meshes)
     timings["extremes"] = time.perf_counter() - t
 
     # half the float32 spacing at each plane: a node closer than that is written onto the plane
@@ -169,6 +171,7 @@ def slice_part(
         "planes": len(planes),
         "height_mm": height,
         "local_extremes_snapped": local_extremes,
+        "ridge_nodes": ridge_nodes,
     }
     sampling_totals = SamplingStats()
     for si, (mesh, topo) in enumerate(zip(meshes, topos, strict=True)):

@@ -77,14 +77,6 @@ KNOWN_PLANE_DEVIATIONS: dict[str, str] = {
         "spike into both the ring and the reference; the ring samples the face's side of it more densely "
         "than the reference does (0.009 mm)"
     ),
-    "bug27453_165-174_piattello.stp": (
-        "z = 17.5: the reference's finer topology mesh misses a 0.14 mm wide sliver 2.5 um below a "
-        "horizontal hole's top line (a ridge; OCCT's section and the DST ring have it: the report says "
-        "so, see REFERENCE_GAPS); z = 35.9: a ring vertex at a sliver's tip lies 0.0066 mm off the "
-        "B-rep: the crossing of a topology edge inside planar face 271, between nodes on two of its "
-        "boundary edges, whose root lies outside the face's trim, on the plane's extension; the two "
-        "edges' own roots, 0.0011 mm apart, are its ring neighbours (a ring defect)"
-    ),
     "bug29241.stp": (
         "z = 266.7 (a flat face on the plane): no exact point beside the face closer than 3e-5 mm to it "
         "(a neighbour's vertex off its plane by the file's tolerance), where a fillet tangent to the face "
@@ -93,8 +85,10 @@ KNOWN_PLANE_DEVIATIONS: dict[str, str] = {
 }
 
 # The report's warning that its reference misses part of a section (a DST ring vertex on the B-rep far
-# from it) must name exactly these planes, and appear on no other file.
-REFERENCE_GAPS: dict[str, str] = {"bug27453_165-174_piattello.stp": "at 1 plane(s) (87;"}
+# from it) must name exactly these planes, and appear on no other file. (None since the topology meshes
+# get node rows on horizontal ridges: bug27453's plane 87, a sliver 2.5 um below a hole's top line, was
+# one.)
+REFERENCE_GAPS: dict[str, str] = {}
 
 
 # Parts too large for 0.2 mm layers within the triangle limit, sliced coarser so their geometry is

@@ -281,14 +281,16 @@ def test_a_plane_just_below_the_top_of_a_tilted_rim_gets_its_loop(make_step, mon
         ("lying_cylinder", 3.0, lambda w: 2 * (20.0 + 2 * w) + 12.0),
     ],
 )
-@pytest.mark.parametrize("clearance", [0.0015, 0.0024, 0.005, 0.05])
+@pytest.mark.parametrize("clearance", [0.0001, 0.0005, 0.001, 0.0015, 0.0024, 0.005, 0.05])
 def test_a_plane_just_below_a_horizontal_ridge_gets_straight_single_sides(
     make_step, kind, radius, perimeter, clearance
 ):
     """The top line of a horizontal cylinder a few micrometres above a plane: the section's sides
     along it are straight lines, and the topology mesh's long triangles across the ridge cross the
     plane far from where the surface does. The rings must run along each side once (they used to
-    double back: same lines, so the two-sided distance saw nothing, but tens of mm too long)."""
+    double back: same lines, so the two-sided distance saw nothing, but tens of mm too long). Below
+    about 1.5 um the topology mesh's highest node row was under the plane and the sliver was lost
+    (the hole printed closed over its top): a row of nodes is now put on the ridge line."""
     mesh = slice_step(make_step(kind, clearance=clearance), SliceParams(layer_height=0.2))
     j = 20
     assert mesh.planes.z[j] == pytest.approx(4.1)
@@ -296,8 +298,37 @@ def test_a_plane_just_below_a_horizontal_ridge_gets_straight_single_sides(
     e, plane = ring_edges(mesh)
     e = e[plane == j]
     length = np.linalg.norm(mesh.vertices[e[:, 0]] - mesh.vertices[e[:, 1]], axis=1).sum()
-    w = math.sqrt(2 * radius * clearance - clearance**2)  # the sliver's half-width at the plane
-    assert length == pytest.approx(perimeter(w), abs=1e-4)
+    # the sliver's half-width at the plane as cut: at its float32 height, 0.1 um below 4.1
+    depth = 4.1 + clearance - float(mesh.planes.section_z[j])
+    w = math.sqrt(2 * radius * depth - depth**2)
+    assert length == pytest.approx(perimeter(w), abs=1e-5)
+    if clearance < 0.0015:
+        assert mesh.stats["ridge_nodes"] > 0
+
+
+@pytest.mark.parametrize("nurbs", [False, True])
+@pytest.mark.parametrize("clearance", [0.0001, 0.001])
+def test_a_plane_just_below_a_torus_top_circle_cuts_both_of_its_circles(make_step, nurbs, clearance):
+    """The top circle of a torus lying flat (a ring, an o-ring groove's rim) is a horizontal ridge
+    too, iso-v in the torus's parameters (analytic or B-spline). A plane micrometres below it cuts
+    two circles 2 sqrt(2 r d) apart, which the topology mesh's highest node row, below the plane,
+    did not see; with a node row on the ridge both are rings whose vertices lie on them exactly."""
+    mesh = slice_step(
+        make_step("flat_torus", clearance=clearance, nurbs=nurbs), SliceParams(layer_height=0.2)
+    )
+    j = 20
+    assert_watertight(mesh)
+    depth = 4.1 + clearance - float(mesh.planes.section_z[j])
+    w = math.sqrt(2 * 2.0 * depth - depth**2)
+    e, plane = ring_edges(mesh)
+    v = mesh.vertices[np.unique(e[plane == j])]
+    r = np.hypot(v[:, 0], v[:, 1])
+    ring = r < 12.0  # the post's corner is 17 mm out
+    inner, outer = r[ring & (r < 10.0)], r[ring & (r > 10.0)]
+    assert len(inner) > 50 and len(outer) > 50
+    np.testing.assert_allclose(inner, 10.0 - w, atol=1e-6)
+    np.testing.assert_allclose(outer, 10.0 + w, atol=1e-6)
+    assert mesh.stats["ridge_nodes"] > 0
 
 
 def _kinked_prism(corners, height: float):

@@ -245,6 +245,23 @@ def test_flat_face_with_a_vertex_off_its_plane_by_the_file_tolerance(tmp_path, m
     assert sum(map(closed_length, ref.below_loops[20])) == pytest.approx(80.0, abs=1e-6)
 
 
+def test_reference_finds_the_sliver_below_a_horizontal_hole_top(tmp_path):
+    """The reference's own topology mesh gets node rows on horizontal ridges too: a plane 0.1 um
+    below a horizontal hole's top line cuts the block into two rectangles (the hole's top a slit
+    0.04 mm wide), not one (it missed such a slit on bug27453 at z = 17.5, and the report blamed
+    DST for it)."""
+    from tests.conftest import build_part, write_step
+
+    part = read_step(write_step(build_part("through_hole", clearance=1e-4), tmp_path / "hole.step"))
+    ref = exact_sections(part, np.array([4.1]), chord=1e-3, segment_length=2.0, deflection=0.01)
+    (loops,) = ref.loops
+    assert len(loops) == 2
+    w = math.sqrt(2 * 2.0 * 1e-4 - 1e-8)  # the slit's half-width
+    assert ref.perimeters()[0] == pytest.approx(4 * (35.0 - w), abs=1e-6)
+    for p in loops:
+        assert np.abs(p[:, 1]).min() == pytest.approx(w, abs=1e-7)
+
+
 def test_reference_topology_retries_another_deflection(tmp_path, monkeypatch):
     """BRepMesh's mesh is not a closed manifold at some deflections on some files (11752.stp at the
     reference's): the reference then takes the next deflection that works, and says which."""

@@ -1,0 +1,252 @@
+"""Rows of topology-mesh nodes along horizontal ridges and valleys of faces, where a plane needs them.
+
+The top line of a cylinder lying on its side (a horizontal hole, a round bar) is a line of maxima of
+z inside its face: a ridge, all of it at one height. BRepMesh puts node rows along such a face at
+steps that need not include the top, so the highest row can lie up to a deflection below the ridge.
+A plane in that band cuts a thin sliver along the ridge (two lines 2 sqrt(2 r d) apart, d below the
+top) that the topology mesh does not cross at all: the section would lose it (a hole's top printed
+closed). ``snap_local_extremes`` cannot help: a node of a row along the ridge is not higher than its
+neighbours in the row (or, moved onto the ridge, gets a loop around itself only).
+
+Where a plane lies within the band of a face's highest point (lowest: a hole's bottom line, a bar's
+underside), the face's extreme is found exactly (bounded L-BFGS from its highest node, as for
+apexes); if the surface keeps that height along the iso-parameter line through it (u or v fixed:
+the generatrix of a cylinder or an extrusion, the top circle of a torus or of a surface of revolution
+about a vertical axis, analytic or B-spline), the face's triangles are split along that line: a node
+wherever it crosses a mesh edge, each an exact point of the B-rep (on the line inside the face; on a
+boundary edge, the edge's own height extreme there: where an edge on the surface crosses the ridge,
+its height is stationary). Every triangle using a split edge is split too (on both faces of a
+boundary edge), so the mesh stays closed and consistently oriented.
+
+Not handled: a ridge that is not its face's extreme, or not an iso-parameter line.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from OCP.GeomAbs import GeomAbs_Plane
+from scipy.optimize import minimize_scalar
+
+from worker.dst.exact import FaceEval
+from worker.dst.lowest import face_optimum
+from worker.dst.topomesh import TopoMesh
+
+# a plane this many topology deflections beside a face's highest (lowest) node may miss its sliver
+BAND_DEFLECTIONS = 2.0
+_LINE_SAMPLES = 9  # points along a candidate line checked for constant height
+_LINE_TOL_MM = 1e-9  # ... within this of the extreme's height: a horizontal line
+# a node this close to the line, relative to its edge's extent in the line's parameter, is on it
+_ON_LINE_REL = 1e-6
+
+
+def add_ridge_rows(mesh: TopoMesh, planes: np.ndarray) -> int:
+    """Split ``mesh`` (in place) along every face's ridge (valley) line with a plane strictly within
+    the band below (above) it. Returns the nodes added."""
+    planes = np.sort(np.asarray(planes, dtype=np.float64))
+    if not len(planes) or not len(mesh.tris):
+        return 0
+    band = BAND_DEFLECTIONS * mesh.deflection
+    n_faces = len(mesh.faces)
+    zc = mesh.xyz[mesh.tris, 2]  # (m, 3)
+    top = np.full(n_faces, -np.inf)
+    bottom = np.full(n_faces, np.inf)
+    np.maximum.at(top, mesh.tri_face, zc.max(axis=1))
+    np.minimum.at(bottom, mesh.tri_face, zc.min(axis=1))
+    added = 0
+    for sign, level in ((-1.0, top), (1.0, bottom)):
+        # faces whose highest (lowest) node has a plane within the band on either side
+        k = np.searchsorted(planes, level - band, side="left")
+        near = (k < len(planes)) & (planes[np.minimum(k, len(planes) - 1)] <= level + band)
+        for f in np.flatnonzero(near).tolist():
+            if mesh.faces[f].ad.GetType() == GeomAbs_Plane:
+                continue  # flat faces on planes are the cut's business
+            line = _extreme_line(mesh, f, sign)
+            if line is None:
+                continue
+            axis, value, height = line
+            lo, hi = (height - band, height) if sign < 0 else (height, height + band)
+            j = np.searchsorted(planes, lo, side="left")
+            # strictly beside the line: a plane through it meets the surface along the line only
+            if j < len(planes) and planes[j] <= hi and planes[j] != height:
+                added += _split_along(mesh, f, axis, value, sign)
+    return added
+
+
+def _extreme_line(mesh: TopoMesh, f: int, sign: float) -> tuple[int, float, float] | None:
+    """(parameter axis: 0 for an iso-u line, 1 for iso-v; its parameter; its height) of the
+    horizontal iso-parameter line through face ``f``'s highest (sign -1) or lowest (+1) point, or
+    None if the extreme is not on such a line (a point: an apex) or lies on the face's border."""
+    fe = mesh.faces[f]
+    sel = np.flatnonzero(mesh.tri_face == f)
+    uvs = mesh.tri_uv[sel].reshape(-1, 2)
+    z = mesh.xyz[mesh.tris[sel].ravel(), 2]
+    u, v = face_optimum(fe, uvs[int(np.argmin(sign * z))], sign)
+    height = fe.point(u, v)[2]
+    lo, hi = uvs.min(axis=0), uvs.max(axis=0)
+    for axis, value in ((0, u), (1, v)):
+        period = _period(fe, axis)
+        if period:  # onto the branch of the face's (u, v) in its triangles
+            value = lo[axis] + (value - lo[axis]) % period
+        span = hi[axis] - lo[axis]
+        if not lo[axis] + 1e-9 * span < value < hi[axis] - 1e-9 * span:
+            continue  # on the face's border: its edge's nodes are on it already
+        other = 1 - axis
+        along = np.linspace(lo[other], hi[other], _LINE_SAMPLES)
+        uv = np.empty((_LINE_SAMPLES, 2))
+        uv[:, axis], uv[:, other] = value, along
+        if all(abs(fe.point(float(a), float(b))[2] - height) <= _LINE_TOL_MM for a, b in uv):
+            return axis, value, height
+    return None
+
+
+def _split_along(mesh: TopoMesh, f: int, axis: int, value: float, sign: float) -> int:
+    """Split the triangles of face ``f`` along the line ``uv[axis] = value`` (and the triangles of
+    other faces that share a split boundary edge). Returns the nodes added."""
+    fe = mesh.faces[f]
+    period = _period(fe, axis)
+    sel = np.flatnonzero(mesh.tri_face == f)
+    if not len(sel):
+        return 0
+    c = mesh.tri_uv[sel, :, axis]
+    # the line's parameter on each triangle's branch of a periodic surface
+    w = np.full(len(sel), value)
+    if period:
+        w = value + np.ceil((c.min(axis=1) - value) / period) * period
+    d = c - w[:, None]
+    scale = np.abs(np.roll(c, -1, axis=1) - c)  # each edge's extent in the line's parameter
+    on = np.abs(d) <= _ON_LINE_REL * np.maximum(scale, np.roll(scale, 1, axis=1))
+    d = np.where(on, 0.0, d)
+    d_next = np.roll(d, -1, axis=1)
+    crossed = d * d_next < 0  # edge i (corner i -> i + 1) strictly crossed
+    rows, cols = np.nonzero(crossed)
+    if not len(rows):
+        return 0
+    # one new node per crossed edge, keyed by its global nodes
+    new_of: dict[tuple[int, int], int] = {}
+    points: list[np.ndarray] = []
+    brep_split: dict[tuple[int, int], int] = {}
+    for r, i in zip(rows.tolist(), cols.tolist(), strict=True):
+        t = int(sel[r])
+        a, b = int(mesh.tris[t, i]), int(mesh.tris[t, (i + 1) % 3])
+        key = (min(a, b), max(a, b))
+        if key in new_of:
+            continue
+        ei = mesh.edge_of.get(key)
+        if ei is not None:
+            p = _edge_extreme_between(mesh, ei, a, b, sign)
+            if p is None:
+                return 0  # the boundary edge has no extreme there: leave the face as it is
+            brep_split[key] = ei
+        else:
+            s = d[r, i] / (d[r, i] - d_next[r, i])
+            uv = mesh.tri_uv[t, i] + s * (mesh.tri_uv[t, (i + 1) % 3] - mesh.tri_uv[t, i])
+            p = np.array(fe.point(float(uv[0]), float(uv[1])))
+        new_of[key] = mesh.n_nodes + len(points)
+        points.append(p)
+    xyz = np.vstack([mesh.xyz, np.asarray(points)])
+    # every triangle (any face) with a split edge
+    e = np.stack([mesh.tris, np.roll(mesh.tris, -1, axis=1)], axis=2)  # (m, 3, 2)
+    lo_hi = np.sort(e, axis=2)
+    keys = np.array(list(new_of), dtype=np.int64)
+    n = max(xyz.shape[0], 1)
+    hit = np.isin(lo_hi[..., 0] * n + lo_hi[..., 1], keys[:, 0] * n + keys[:, 1])
+    touched = np.flatnonzero(hit.any(axis=1))
+    new_tris, new_uv, new_face = [], [], []
+    for t in touched.tolist():
+        face = int(mesh.tri_face[t])
+        fe_t = mesh.faces[face]
+        corners = mesh.tris[t].tolist()
+        uvs = mesh.tri_uv[t]
+        poly: list[tuple[int, np.ndarray, bool]] = []
+        for i in range(3):
+            a, b = corners[i], corners[(i + 1) % 3]
+            poly.append((a, uvs[i], False))
+            m = new_of.get((min(a, b), max(a, b)))
+            if m is None:
+                continue
+            p = xyz[m]
+            # (u, v) of the new node in this triangle's face, on this triangle's branch
+            seed = _uv_on_segment(uvs[i], uvs[(i + 1) % 3], mesh.xyz[a], mesh.xyz[b], p)
+            poly.append((m, np.asarray(fe_t.uv_near(tuple(p), tuple(seed))), True))
+        for tri in _triangulate(poly, xyz):
+            new_tris.append([v for v, _ in tri])
+            new_uv.append([uv for _, uv in tri])
+            new_face.append(face)
+    keep = np.ones(len(mesh.tris), dtype=bool)
+    keep[touched] = False
+    mesh.xyz = xyz
+    mesh.tris = np.concatenate([mesh.tris[keep], np.asarray(new_tris, dtype=np.int64)])
+    mesh.tri_uv = np.concatenate([mesh.tri_uv[keep], np.asarray(new_uv, dtype=np.float64)])
+    mesh.tri_face = np.concatenate([mesh.tri_face[keep], np.asarray(new_face, dtype=mesh.tri_face.dtype)])
+    for (a, b), ei in brep_split.items():
+        m = new_of[(a, b)]
+        del mesh.edge_of[(a, b)]
+        mesh.edge_of[(min(a, m), max(a, m))] = ei
+        mesh.edge_of[(min(m, b), max(m, b))] = ei
+    return len(points)
+
+
+def _period(fe: FaceEval, axis: int) -> float:
+    ad = fe.ad
+    if axis == 0:
+        return ad.UPeriod() if ad.IsUPeriodic() else 0.0
+    return ad.VPeriod() if ad.IsVPeriodic() else 0.0
+
+
+def _uv_on_segment(uva, uvb, pa, pb, p) -> np.ndarray:
+    """(u, v) interpolated along a triangle edge at the fraction where ``p`` projects on it."""
+    ab = pb - pa
+    s = float(np.clip(np.dot(p - pa, ab) / max(float(np.dot(ab, ab)), 1e-300), 0.0, 1.0))
+    return np.asarray(uva) + s * (np.asarray(uvb) - np.asarray(uva))
+
+
+def _edge_extreme_between(mesh: TopoMesh, ei: int, a: int, b: int, sign: float) -> np.ndarray | None:
+    """The B-rep edge's highest (sign -1) or lowest (+1) point strictly between nodes ``a`` and
+    ``b`` (bounded Brent in the curve parameter), or None if it is at either node."""
+    ev = mesh.edges[ei]
+    sa = ev.parameter_of(tuple(mesh.xyz[a]))
+    sb = ev.parameter_of(tuple(mesh.xyz[b]))
+    lo, hi = min(sa, sb), max(sa, sb)
+    if ev.closed and hi - lo > 0.5 * (ev.s1 - ev.s0):
+        return None  # the two nodes straddle a closed edge's seam: not worth the bookkeeping
+    res = minimize_scalar(
+        lambda x: sign * ev.ad.Value(float(x)).Z(),
+        bounds=(lo, hi),
+        method="bounded",
+        options={"xatol": 1e-13 * max(1.0, abs(ev.s1 - ev.s0))},
+    )
+    s = float(res.x)
+    margin = 1e-9 * (hi - lo)
+    if not lo + margin < s < hi - margin:
+        return None
+    q = ev.ad.Value(s)
+    return np.array([q.X(), q.Y(), q.Z()])
+
+
+def _triangulate(
+    poly: list[tuple[int, np.ndarray, bool]], xyz: np.ndarray
+) -> list[list[tuple[int, np.ndarray]]]:
+    """Triangles (corner order kept) of a triangle whose edges got new nodes, given as the polygon of
+    its corners and new nodes in order, each as (node, (u, v), is new). One new node: the fan from
+    it (the other diagonal would join the ends of its own edge: a zero-area triangle). More: each
+    corner between two new nodes is cut off, and what is left (the new nodes' triangle, or a
+    quadrilateral split along its shorter diagonal) filled."""
+    k = len(poly)
+    if k == 4:
+        j = next(i for i, (_, _, new) in enumerate(poly) if new)
+        q = [(v, uv) for v, uv, _ in poly[j:] + poly[:j]]
+        return [[q[0], q[1], q[2]], [q[0], q[2], q[3]]]
+    cut = [i for i in range(k) if not poly[i][2] and poly[i - 1][2] and poly[(i + 1) % k][2]]
+    out = [[poly[(i + d) % k][:2] for d in (-1, 0, 1)] for i in cut]
+    left = [poly[i][:2] for i in range(k) if i not in cut]
+    if len(left) == 3:
+        out.append(left)
+    elif len(left) == 4:
+        p = [xyz[v] for v, _ in left]
+        if np.linalg.norm(p[0] - p[2]) <= np.linalg.norm(p[1] - p[3]):
+            out += [[left[0], left[1], left[2]], [left[0], left[2], left[3]]]
+        else:
+            out += [[left[0], left[1], left[3]], [left[1], left[2], left[3]]]
+    else:
+        raise AssertionError(f"a triangle split into a {len(left)}-gon")
+    return out
