@@ -132,12 +132,14 @@ def _split_along(mesh: TopoMesh, f: int, axis: int, value: float, sign: float) -
         if key in new_of:
             continue
         ei = mesh.edge_of.get(key)
+        p = None
         if ei is not None:
-            p = _edge_extreme_between(mesh, ei, a, b, sign)
-            if p is None:
-                return 0  # the boundary edge has no extreme there: leave the face as it is
             brep_split[key] = ei
-        else:
+            p = _edge_extreme_between(mesh, ei, a, b, sign)
+        if p is None:
+            # inside the face; or on a boundary edge whose extreme is not between the two nodes
+            # (a closed edge's seam between them): the surface on the line, on the edge's pcurve
+            # where that is an iso-line itself (a seam), within the chord's sag of it otherwise
             s = d[r, i] / (d[r, i] - d_next[r, i])
             uv = mesh.tri_uv[t, i] + s * (mesh.tri_uv[t, (i + 1) % 3] - mesh.tri_uv[t, i])
             p = np.array(fe.point(float(uv[0]), float(uv[1])))
