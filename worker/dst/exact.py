@@ -22,7 +22,7 @@ from OCP.gp import gp_Pnt, gp_Pnt2d, gp_Vec
 from OCP.IntTools import IntTools_FClass2d
 from OCP.ShapeAnalysis import ShapeAnalysis_Surface
 from OCP.TopAbs import TopAbs_IN, TopAbs_ON
-from scipy.optimize import brentq
+from scipy.optimize import brentq, minimize_scalar
 
 from worker.dst.constants import ROOT_XTOL
 
@@ -66,14 +66,18 @@ class FaceEval:
         # v = 2 pi: seeded at v = 6.32, it gave v = 0)
         return self.same_branch((p.X(), p.Y()), seed)
 
+    def period(self, axis: int) -> float:
+        """The surface's period in u (``axis`` 0) or v (1), 0 if it is not periodic there."""
+        if axis == 0:
+            return self.ad.UPeriod() if self.ad.IsUPeriodic() else 0.0
+        return self.ad.VPeriod() if self.ad.IsVPeriodic() else 0.0
+
     def same_branch(self, uv: tuple[float, float], near: tuple[float, float]) -> tuple[float, float]:
         """``uv`` moved by whole periods of a periodic surface to the branch nearest ``near``."""
         out = [float(uv[0]), float(uv[1])]
-        for axis, (periodic, period) in enumerate(
-            ((self.ad.IsUPeriodic(), self.ad.UPeriod), (self.ad.IsVPeriodic(), self.ad.VPeriod))
-        ):
-            if periodic:
-                step = period()
+        for axis in (0, 1):
+            step = self.period(axis)
+            if step:
                 out[axis] += round((near[axis] - out[axis]) / step) * step
         return out[0], out[1]
 
@@ -179,6 +183,22 @@ class EdgeEval:
                 if ext.IsMin(i) and ext.SquareDistance(i) < best_d:
                     best_d, best_s = ext.SquareDistance(i), ext.Point(i).Parameter()
         return best_s
+
+    def point(self, s: float) -> tuple[float, float, float]:
+        p = self.ad.Value(s)
+        return p.X(), p.Y(), p.Z()
+
+    def height_extreme(self, lo: float, hi: float, sign: float) -> float:
+        """The parameter of the curve's lowest (``sign`` +1) or highest (-1) point between ``lo`` and
+        ``hi`` (bounded Brent: the one in the basin it finds)."""
+        ad = self.ad
+        res = minimize_scalar(
+            lambda x: sign * ad.Value(float(x)).Z(),
+            bounds=(lo, hi),
+            method="bounded",
+            options={"xatol": 1e-13 * max(1.0, abs(self.s1 - self.s0))},
+        )
+        return float(res.x)
 
     def root(self, sa: float, sb: float, c: float) -> tuple[float, float, float]:
         """The point at height ``c`` on the curve between parameters ``sa`` and ``sb`` (bracketing)."""

@@ -20,7 +20,7 @@ between the node and the exact extreme: otherwise that plane's small loop would 
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import minimize, minimize_scalar
+from scipy.optimize import minimize
 
 from worker.dst.topomesh import TopoMesh
 
@@ -108,15 +108,8 @@ def _edge_extreme(mesh: TopoMesh, ei: int, sign: float) -> tuple[float, np.ndarr
     h = np.array([sign * ev.ad.Value(float(x)).Z() for x in s])
     i = int(np.argmin(h))
     lo, hi = s[max(i - 1, 0)], s[min(i + 1, len(s) - 1)]
-    res = minimize_scalar(
-        lambda x: sign * ev.ad.Value(float(x)).Z(),
-        bounds=(lo, hi),
-        method="bounded",
-        options={"xatol": 1e-13 * max(1.0, abs(ev.s1 - ev.s0))},
-    )
-    x = float(res.x) if sign * ev.ad.Value(float(res.x)).Z() <= h[i] else float(s[i])
-    p = ev.ad.Value(x)
-    pt = np.array([p.X(), p.Y(), p.Z()])
+    x = ev.height_extreme(lo, hi, sign)
+    pt = np.array(ev.point(x if sign * ev.point(x)[2] <= h[i] else float(s[i])))
     return sign * pt[2], pt
 
 
@@ -219,14 +212,7 @@ def _edge_node_optimum(mesh: TopoMesh, node: int, sign: float) -> np.ndarray | N
         lo, hi = sorted(ev.parameter_of(tuple(mesh.xyz[n])) for n in nbrs)
         if not lo < s_n < hi:
             continue  # the neighbours straddle a closed edge's seam
-        res = minimize_scalar(
-            lambda x, ad=ev.ad: sign * ad.Value(float(x)).Z(),
-            bounds=(lo, hi),
-            method="bounded",
-            options={"xatol": 1e-13 * max(1.0, abs(ev.s1 - ev.s0))},
-        )
-        q = ev.ad.Value(float(res.x))
-        pt = np.array([q.X(), q.Y(), q.Z()])
+        pt = np.array(ev.point(ev.height_extreme(lo, hi, sign)))
         if best is None or sign * pt[2] < sign * best[2]:
             best = pt
     return best

@@ -25,9 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 from OCP.GeomAbs import GeomAbs_Plane
-from scipy.optimize import minimize_scalar
 
-from worker.dst.exact import FaceEval
 from worker.dst.lowest import face_optimum
 from worker.dst.topomesh import TopoMesh
 
@@ -84,7 +82,7 @@ def _extreme_line(mesh: TopoMesh, f: int, sign: float) -> tuple[int, float, floa
     height = fe.point(u, v)[2]
     lo, hi = uvs.min(axis=0), uvs.max(axis=0)
     for axis, value in ((0, u), (1, v)):
-        period = _period(fe, axis)
+        period = fe.period(axis)
         if period:  # onto the branch of the face's (u, v) in its triangles
             value = lo[axis] + (value - lo[axis]) % period
         span = hi[axis] - lo[axis]
@@ -103,7 +101,7 @@ def _split_along(mesh: TopoMesh, f: int, axis: int, value: float, sign: float) -
     """Split the triangles of face ``f`` along the line ``uv[axis] = value`` (and the triangles of
     other faces that share a split boundary edge). Returns the nodes added."""
     fe = mesh.faces[f]
-    period = _period(fe, axis)
+    period = fe.period(axis)
     sel = np.flatnonzero(mesh.tri_face == f)
     if not len(sel):
         return 0
@@ -188,13 +186,6 @@ def _split_along(mesh: TopoMesh, f: int, axis: int, value: float, sign: float) -
     return len(points)
 
 
-def _period(fe: FaceEval, axis: int) -> float:
-    ad = fe.ad
-    if axis == 0:
-        return ad.UPeriod() if ad.IsUPeriodic() else 0.0
-    return ad.VPeriod() if ad.IsVPeriodic() else 0.0
-
-
 def _uv_on_segment(uva, uvb, pa, pb, p) -> np.ndarray:
     """(u, v) interpolated along a triangle edge at the fraction where ``p`` projects on it."""
     ab = pb - pa
@@ -211,18 +202,11 @@ def _edge_extreme_between(mesh: TopoMesh, ei: int, a: int, b: int, sign: float) 
     lo, hi = min(sa, sb), max(sa, sb)
     if ev.closed and hi - lo > 0.5 * (ev.s1 - ev.s0):
         return None  # the two nodes straddle a closed edge's seam: not worth the bookkeeping
-    res = minimize_scalar(
-        lambda x: sign * ev.ad.Value(float(x)).Z(),
-        bounds=(lo, hi),
-        method="bounded",
-        options={"xatol": 1e-13 * max(1.0, abs(ev.s1 - ev.s0))},
-    )
-    s = float(res.x)
+    s = ev.height_extreme(lo, hi, sign)
     margin = 1e-9 * (hi - lo)
     if not lo + margin < s < hi - margin:
         return None
-    q = ev.ad.Value(s)
-    return np.array([q.X(), q.Y(), q.Z()])
+    return np.array(ev.point(s))
 
 
 def _triangulate(

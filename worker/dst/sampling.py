@@ -126,9 +126,7 @@ class SamplingStats:
     kink_corners: int = 0  # corners placed where a section crosses a C0 line inside a face
     quarter_checks: int = 0  # segments also checked at their quarter points (see _quarter_sags)
     unchecked_segments: int = 0  # segments whose midpoint could not be placed (see _midpoints_off_the_path)
-    off_trim_crossings: int = (
-        0  # crossings whose root lay beyond their face's trim, dropped (see pinned_loop)
-    )
+    off_trim_crossings: int = 0  # crossings whose root lay beyond their face's trim (see _drop_off_trim)
     max_gap_mm: float = 0.0
     max_gap_at: str = ""
 
