@@ -21,6 +21,7 @@ from scipy.spatial import cKDTree
 DENSE_SPACING_MM = 0.2
 _K_NEIGHBOURS = 4
 _QUERY_CHUNK = 8192  # queries per nearest-segment search step
+_FIRST_RADIUS_MM = 0.5  # see SegmentSet._nearest
 CORNER_RAD = 1.0  # a reference polyline turning more than this (rad) at a vertex has a corner there
 _PLANE_SEPARATION_MM = 1e7  # farther than any two points of a part in one plane
 
@@ -379,18 +380,29 @@ class SegmentSet:
         d = np.full(len(q), np.inf)
         todo = np.arange(len(q))
         k = _K_NEIGHBOURS
+        reach = 0.5 * self.spacing + self.max_offset
+        # the first search bounded: it visits fewer tree nodes (~8% less measuring time), and its
+        # answer is sure for every point within _FIRST_RADIUS_MM of the segments
+        bound = _FIRST_RADIUS_MM + reach
+        n = self.tree.n
         while len(todo):
-            k = min(k, self.tree.n)
-            dk, ik = self.tree.query(q[todo], k=k, workers=workers)
+            k = min(k, n)
+            dk, ik = self.tree.query(q[todo], k=k, workers=workers, distance_upper_bound=bound)
             dk, ik = dk.reshape(len(todo), k), ik.reshape(len(todo), k)
-            rows = self._rows[self.owner[ik]]  # (n, k, columns)
-            d[todo] = _point_curve(p2[todo][:, None, :], rows).min(axis=1)
-            if k == self.tree.n:
+            found = ik < n  # fewer than k points within the bound: the others come back as index n
+            rows = self._rows[self.owner[np.where(found, ik, 0)]]  # (n, k, columns)
+            dist = _point_curve(p2[todo][:, None, :], rows)
+            d[todo] = np.where(found, dist, np.inf).min(axis=1)
+            if k == n and bound == np.inf:
                 break
-            # The nearest segment has a dense point within d + spacing/2 of the query: when the k
-            # points found do not cover that ball, look again with more.
-            todo = todo[dk[:, -1] <= d[todo] + 0.5 * self.spacing + self.max_offset]
+            # The nearest segment has a dense point within d + spacing/2 (+ a curve's offset) of
+            # the query: when the points found do not cover that ball (fewer than k found: when it
+            # leaves the bound), look again, with more and unbounded.
+            ball = d[todo] + reach
+            last = dk[:, -1]
+            todo = todo[(last <= ball) | (np.isinf(last) & (ball >= bound))]
             k *= 4
+            bound = np.inf
         return d
 
 

@@ -58,7 +58,7 @@ def die_with_parent() -> None:
 class Task:
     """One function call, running in a forked child or already run inline."""
 
-    def __init__(self, fn: Callable[..., Any], args: tuple, forked: bool):
+    def __init__(self, fn: Callable[..., Any], args: tuple, forked: bool, nice: int = 0):
         self.pid: int | None = None
         self._fd: int | None = None
         self._outcome: tuple[bool, Any] | None = None
@@ -74,6 +74,8 @@ class Task:
             try:
                 os.close(r)
                 die_with_parent()
+                if nice:
+                    os.nice(nice)
                 _run_child(fn, args, w)
             finally:
                 os._exit(0)
@@ -152,12 +154,13 @@ class TaskGroup:
         self.limit = max(1, limit or usable_cpus())
         self._running: list[Task] = []
 
-    def submit(self, fn: Callable[..., Any], *args: Any) -> Task:
-        """Start ``fn(*args)`` (or, inline, run it); waits while ``limit`` children are busy."""
+    def submit(self, fn: Callable[..., Any], *args: Any, nice: int = 0) -> Task:
+        """Start ``fn(*args)`` (or, inline, run it); waits while ``limit`` children are busy.
+        ``nice``: the child's niceness increment (work that should yield its core to this process)."""
         self._running = [t for t in self._running if not t.done()]  # collected by result()
         while len(self._running) >= self.limit:
             self._wait_one()
-        task = Task(fn, args, self.forked)
+        task = Task(fn, args, self.forked, nice)
         if not task.done():
             self._running.append(task)
         return task

@@ -86,13 +86,17 @@ def exact_sections(
     chord: float,
     segment_length: float,
     deflection: float,
+    parallel: bool = True,
 ) -> ExactSections:
     """Dense exact sections of ``part`` at ``heights`` above its exact lowest point.
 
     ``heights`` may be a function of the part's exact height (highest minus lowest point).
+    ``parallel``: the topology mesh's faces on OCCT's thread pool (never in a forked process).
     """
     diag, _ = bbox_diagonal(part)  # merge tolerance relative to the whole part, as in the DST build
-    meshes, used = zip(*[_reference_topomesh(s, deflection, diag) for s in part.solids], strict=True)
+    meshes, used = zip(
+        *[_reference_topomesh(s, deflection, diag, parallel) for s in part.solids], strict=True
+    )
     meshes = list(meshes)
     zmin, zmax = snap_extremes(meshes)
     if callable(heights):
@@ -229,19 +233,23 @@ def _deflections(used) -> str:
     return " / ".join(f"{d:.3g}" for d in values)
 
 
-def _reference_topomesh(solid, deflection: float, diag: float):
+def _reference_topomesh(solid, deflection: float, diag: float, parallel: bool = True):
     """The solid's topology mesh at ``deflection``, or, where BRepMesh's mesh there is not a closed
     manifold (it depends on the deflection: 11752.stp at half the DST build's), at the next of
     ``RETRY_DEFLECTIONS`` times it that is. Returns the mesh and the deflection used."""
     return _first_that_works(
-        lambda d: (_topomesh(solid, d, diag), d), tuple(deflection * f for f in RETRY_DEFLECTIONS)
+        lambda d: (_topomesh(solid, d, diag, parallel), d), tuple(deflection * f for f in RETRY_DEFLECTIONS)
     )
 
 
-def _topomesh(solid, deflection: float, diag: float):
+def _topomesh(solid, deflection: float, diag: float, parallel: bool = True):
     BRepTools.Clean_s(solid)
     return build_topomesh(
-        solid, deflection=deflection, angular=C.TOPO_ANGULAR_RAD, merge_tol=C.MERGE_TOL_REL * diag
+        solid,
+        deflection=deflection,
+        angular=C.TOPO_ANGULAR_RAD,
+        merge_tol=C.MERGE_TOL_REL * diag,
+        parallel=parallel,
     )
 
 

@@ -57,7 +57,7 @@ from worker.dst.pipeline import (
     topo_deflection,
 )
 from worker.dst.planes import plan_planes
-from worker.dst.reference import closed_length, exact_sections
+from worker.dst.reference import ExactSections, closed_length, exact_sections
 from worker.dst.step_io import LoadedPart, read_step
 from worker.dst.topomesh import max_tolerance
 
@@ -74,6 +74,8 @@ CURA_MIN_CIRCUMFERENCE_MM = 1.0
 # Plane ranges measured by one helper hold at least this much work (``_plane_costs`` units: searched
 # points; ~0.2 s on the development machine): smaller ones cost more to fork than they save.
 MIN_MEASURE_CHUNK = 100_000
+# Niceness of a job's helpers that start beside its DST build: they take the cores it leaves idle
+BACKGROUND_NICE = 10
 VOLUME_WARN_REL = 0.01  # a mesh enclosing 1% more or less than the solid is worth a warning
 # A DST ring vertex this far from the exact reference (mm) is checked against the B-rep: lying on it,
 # it shows a part of the section the reference missed (its own topology mesh passed between the plane
@@ -146,9 +148,43 @@ def _occt_side(part: LoadedPart, baselines: Sequence[str], parallel: bool) -> Oc
     return OcctSide(out, xy_box(part), part.volume_mm3)
 
 
-def _start_occt_side(tasks: TaskGroup, part: LoadedPart, baselines: Sequence[str]) -> Task:
+def _start_occt_side(tasks: TaskGroup, part: LoadedPart, baselines: Sequence[str], nice: int = 0) -> Task:
     """``_occt_side`` as a task of ``tasks`` (OCCT on one thread in a forked helper)."""
-    return tasks.submit(_occt_side, part, baselines, not tasks.forked)
+    return tasks.submit(_occt_side, part, baselines, not tasks.forked, nice=nice)
+
+
+@dataclass
+class _Reference:
+    """The exact sections a report measures against, the chord they were sampled to, and the
+    seconds they took."""
+
+    sections: ExactSections
+    chord: float
+    seconds: float
+
+
+def _exact_reference(
+    part: LoadedPart, params: SliceParams, heights: np.ndarray | None, parallel: bool = True
+) -> _Reference:
+    """The report's exact sections at ``heights`` (None: the planes ``params`` give for the part's
+    exact height, found by the reference itself), from their own, finer topology mesh. ``parallel``:
+    OCCT's thread pool may be used (not in a forked helper)."""
+    t = time.perf_counter()
+    diag, _ = bbox_diagonal(part)
+    chord = min(REFERENCE_CHORD_MM, 0.1 * params.chord_error)
+
+    def planned(height: float) -> np.ndarray:
+        return plan_planes(height=height, params=params).section_z
+
+    sections = exact_sections(
+        part,
+        planned if heights is None else heights,
+        chord=chord,
+        segment_length=REFERENCE_SEGMENT_MM,
+        deflection=0.5 * topo_deflection(diag),  # finer than the DST build's: its own topology
+        parallel=parallel,
+    )
+    return _Reference(sections, chord, time.perf_counter() - t)
 
 
 def _occt_result(side: Task) -> OcctSide:
@@ -361,8 +397,16 @@ def slice_and_report(
     report("reading STEP", 0.0)
     part = read_step(path)
     with TaskGroup(forked=processes != 1, limit=processes) as tasks:
-        # forked, beside the build; inline (nothing to overlap), after it
-        side = _start_occt_side(tasks, part, baselines) if tasks.forked else None
+        # Forked, beside the build, at a lower priority (the build keeps its core; they take what
+        # it leaves idle): the OCCT side, and with a second helper to spare, the exact reference at
+        # the planes it plans from its own exact height (the build's, unless the two heights fall
+        # on either side of a plane's limit: then it is made again at the build's planes).
+        # Inline (nothing to overlap): after the build.
+        side = reference = None
+        if tasks.forked:
+            side = _start_occt_side(tasks, part, baselines, nice=BACKGROUND_NICE)
+            if tasks.limit >= 2:
+                reference = tasks.submit(_exact_reference, part, params, None, False, nice=BACKGROUND_NICE)
         mesh = slice_part(part, params, progress=lambda s, f: report(s, 0.5 * f), t0=t0)
         if on_mesh is not None:
             on_mesh(mesh)
@@ -378,6 +422,7 @@ def slice_and_report(
             tasks,
             side,
             lambda s, f: report(s, 0.5 + 0.5 * f),
+            reference,
         )
     return mesh, out
 
@@ -392,33 +437,33 @@ def _build_report(
     tasks: TaskGroup,
     side: Task,
     report: Progress,
+    reference: Task | None = None,
 ) -> Report:
-    """The report, ``side`` being ``_occt_side``'s task. OCCT's own work (the baselines, the exact
-    box and volume) holds the GIL: it runs in a child process beside the exact reference, on one
-    thread there (OCCT's thread pool stays behind in this process when it forks)."""
+    """The report, ``side`` being ``_occt_side``'s task and ``reference`` (if started)
+    ``_exact_reference``'s. OCCT's own work (the baselines, the exact box and volume) holds the GIL:
+    it runs in a child process beside the exact reference, on one thread there (OCCT's thread pool
+    stays behind in this process when it forks)."""
     warnings: list[str] = []
     report("exact sections", 0.0)
-    t = time.perf_counter()
-    diag, _ = bbox_diagonal(part)
-    deflection = 0.5 * topo_deflection(diag)  # finer than the DST build's: its own topology
-    chord = min(REFERENCE_CHORD_MM, 0.1 * params.chord_error)
-    # plane heights: the DST mesh's own (identical by construction), else planned from the exact height
-    if dst is not None:
-        heights = dst.planes.section_z
-    else:
-
-        def heights(height: float) -> np.ndarray:
-            return plan_planes(height=height, params=params).section_z
-
-    ref = exact_sections(
-        part, heights, chord=chord, segment_length=REFERENCE_SEGMENT_MM, deflection=deflection
-    )
+    # plane heights: the DST mesh's own, else planned from the exact height
+    dst_heights = None if dst is None else dst.planes.section_z
+    made = None
+    if reference is not None:
+        made = _helper_result(
+            reference, TessellationError, "OCCT failed while computing the exact reference sections: {exc}"
+        )
+        if dst_heights is not None and not np.array_equal(made.sections.heights, dst_heights):
+            made = None  # planned for a slightly different exact height: made again at the build's planes
+    if made is None:
+        made = _exact_reference(part, params, dst_heights)
+    ref, chord = made.sections, made.chord
     heights = ref.heights
+    t = time.perf_counter()
     planes_z = plan_planes(height=ref.zmax - ref.zmin, params=params).z if dst is None else dst.planes.z
     n_planes = len(heights)
     ref_set, ref_perimeter, loops_exact = _reference_segments(ref.loops, ref.corners, chord, n_planes)
     below = _below_reference(ref, chord) if ref.flat_planes else None
-    ref_seconds = time.perf_counter() - t
+    ref_seconds = made.seconds + time.perf_counter() - t  # and its segments' search structure
 
     todo: list[MeshInput] = []
     if dst is not None:

@@ -73,13 +73,16 @@ class TopoMesh:
         return int(self.xyz.shape[0])
 
 
-def build_topomesh(solid: TopoDS_Shape, *, deflection: float, angular: float, merge_tol: float) -> TopoMesh:
+def build_topomesh(
+    solid: TopoDS_Shape, *, deflection: float, angular: float, merge_tol: float, parallel: bool = True
+) -> TopoMesh:
     """Mesh ``solid`` with BRepMesh and merge it into one closed, outward-oriented indexed mesh.
+    ``parallel``: faces on OCCT's thread pool (never in a forked process: see ``forked``).
 
     Raises TessellationError if a face cannot be meshed or the merged mesh is not closed.
     """
     BRepTools.Clean_s(solid)
-    mesher = BRepMesh_IncrementalMesh(solid, deflection, False, angular, True)  # faces in parallel
+    mesher = BRepMesh_IncrementalMesh(solid, deflection, False, angular, parallel)
     if not mesher.IsDone():
         raise TessellationError("OCCT's mesher failed on this solid")
 

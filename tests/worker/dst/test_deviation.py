@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from worker.dst.deviation import (
+    _FIRST_RADIUS_MM,
     SegmentSet,
     compare,
     cut_mesh,
@@ -154,6 +155,8 @@ def test_empty_cut_and_missing_loop_are_reported():
 
 
 def test_segment_distances_are_exact_against_brute_force():
+    """Every point's distance, near the segments (found by the first, bounded search) and far from
+    them (beyond its bound: searched again)."""
     rng = np.random.default_rng(7)
     a = rng.uniform(-5, 5, (400, 2))
     seg = np.stack([a, a + rng.normal(0, 1.5, (400, 2))], axis=1)
@@ -161,12 +164,27 @@ def test_segment_distances_are_exact_against_brute_force():
     pts = rng.uniform(-8, 8, (2000, 2))
     pts_plane = rng.integers(0, 3, 2000)
     d = SegmentSet(seg, plane, spacing=0.7).distance(pts, pts_plane)
-    for i in range(0, 2000, 37):
-        s = seg[plane == pts_plane[i]]
-        ab = s[:, 1] - s[:, 0]
-        tt = np.clip(np.einsum("ij,ij->i", pts[i] - s[:, 0], ab) / np.einsum("ij,ij->i", ab, ab), 0, 1)
-        brute = np.linalg.norm(s[:, 0] + tt[:, None] * ab - pts[i], axis=1).min()
-        assert d[i] == pytest.approx(brute, abs=1e-12)
+    ab = seg[:, 1] - seg[:, 0]  # (s, 2)
+    ap = pts[:, None, :] - seg[None, :, 0]  # (p, s, 2)
+    tt = np.clip(np.einsum("psi,si->ps", ap, ab) / np.einsum("si,si->s", ab, ab), 0, 1)
+    dist = np.linalg.norm(ap - tt[..., None] * ab, axis=2)
+    brute = np.where(plane[None, :] == pts_plane[:, None], dist, np.inf).min(axis=1)
+    np.testing.assert_allclose(d, brute, rtol=0, atol=1e-12)
+    assert (brute < 0.2).sum() > 200 and (brute > 1.5).sum() > 200  # both searches were needed
+
+
+def test_a_nearer_segment_whose_dense_points_lie_beyond_the_first_search_is_found():
+    """The first search only looks within a bound: a point 0.9 mm from a long segment whose dense
+    points are all farther than that bound, and 0.95 mm from a short one with a point inside it,
+    must be searched again (not take the short one's 0.95)."""
+    spacing = 1.0
+    seg = np.array([[[0.0, 0.0], [10.0, 0.0]], [[0.45, 1.85], [0.55, 1.85]]])
+    q = np.array([[0.5, 0.9]])
+    s = SegmentSet(seg, np.zeros(2, dtype=np.int64), spacing=spacing)
+    bound = _FIRST_RADIUS_MM + 0.5 * spacing
+    near = np.linalg.norm(s.tree.data[:, :2] - q, axis=1) <= bound
+    assert near.any() and (s.owner[near] == 1).all()  # only the short one's points are within it
+    assert s.distance(q, np.zeros(1, dtype=np.int64))[0] == pytest.approx(0.9, abs=1e-12)
 
 
 def test_arc_correction_measures_the_curve_not_its_polyline():

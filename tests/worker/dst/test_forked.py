@@ -82,6 +82,15 @@ def test_leaving_the_group_early_kills_its_children():
         os.kill(t.pid, 0)  # killed and reaped
 
 
+@needs_fork
+def test_a_niced_task_runs_at_a_lower_priority_and_leaves_this_process_as_it_was():
+    mine = os.nice(0)
+    with TaskGroup(forked=True) as tasks:
+        theirs = tasks.submit(os.nice, 0, nice=5).result()
+    assert theirs == min(mine + 5, 19)
+    assert os.nice(0) == mine
+
+
 def test_inline_tasks_run_in_this_process():
     with TaskGroup(forked=False) as tasks:
         assert not tasks.forked

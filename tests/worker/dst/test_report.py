@@ -223,8 +223,8 @@ def test_flat_face_with_a_vertex_off_its_plane_by_the_file_tolerance(tmp_path, m
     build = reference._topomesh
     moved = []
 
-    def off_by_tolerance(solid, deflection, diag):
-        mesh = build(solid, deflection, diag)
+    def off_by_tolerance(solid, deflection, diag, parallel=True):
+        mesh = build(solid, deflection, diag, parallel)
         z = mesh.xyz[:, 2]
         zmin = z.min()
         # a corner of the upper block's footprint: on the step face and on the upper block's walls
@@ -272,11 +272,11 @@ def test_reference_topology_retries_another_deflection(tmp_path, monkeypatch):
     part = read_step(write_step(build_part("step_box"), tmp_path / "stepped.step"))
     build, tried = reference._topomesh, []
 
-    def picky(solid, deflection, diag):
+    def picky(solid, deflection, diag, parallel=True):
         tried.append(deflection)
         if len(tried) < 3:
             raise TessellationError("topology mesh is not a closed 2-manifold")
-        return build(solid, deflection, diag)
+        return build(solid, deflection, diag, parallel)
 
     monkeypatch.setattr(reference, "_topomesh", picky)
     ref = exact_sections(part, np.array([1.1, 5.1]), chord=1e-3, segment_length=2.0, deflection=0.01)
@@ -455,11 +455,11 @@ def test_forked_helpers_and_one_process_give_the_same_report(hemisphere, monkeyp
     assert forked.input == inline.input and forked.warnings == inline.warnings
 
 
-@pytest.mark.parametrize("processes", [None, 1])
+@pytest.mark.parametrize("processes", [None, 2, 1])
 def test_slice_and_report_gives_the_mesh_and_report_of_the_two_steps(hemisphere, processes):
-    """The job's form (the baselines meshed in a helper started before the DST build, the mesh
-    handed over as soon as it is built) gives the same mesh and the same numbers as slicing and
-    then reporting."""
+    """The job's form (the baselines and, with two helpers, the exact reference computed in helpers
+    started before the DST build; the mesh handed over as soon as it is built) gives the same mesh
+    and the same numbers as slicing and then reporting."""
     from worker.dst.report import slice_and_report
 
     path, mesh, _, _ = hemisphere
@@ -475,6 +475,65 @@ def test_slice_and_report_gives_the_mesh_and_report_of_the_two_steps(hemisphere,
     assert [m.name for m in report.meshes] == ["dst", "occt_fast"]
     assert _numbers(report) == _numbers(two_steps)
     assert report.input == two_steps.input and report.warnings == two_steps.warnings
+
+
+def test_a_reference_planned_for_other_planes_than_the_builds_is_made_again(hemisphere, monkeypatch):
+    """The job's reference helper plans its planes from its own exact height, before the DST build
+    has its own: where the two plans differ (here: the helper's made to lose the top plane), the
+    reference is made again at the build's planes, and the report is the two steps' one."""
+    import os
+
+    from worker.dst import report as report_mod
+    from worker.dst.forked import fork_available
+    from worker.dst.report import slice_and_report
+
+    if not fork_available():
+        pytest.skip("fork is used on Linux only")
+    path, mesh, _, _ = hemisphere
+    params = SliceParams(layer_height=0.2)
+    real, here, main = report_mod._exact_reference, [], os.getpid()
+
+    def planned_apart(part, params, heights, parallel=True):
+        if heights is None:  # the helper's call: one plane short
+            heights = mesh.planes.section_z[:-1]
+        elif os.getpid() == main:
+            here.append(len(heights))
+        return real(part, params, heights, parallel)
+
+    monkeypatch.setattr(report_mod, "_exact_reference", planned_apart)
+    _, report = slice_and_report(path, params, baselines=[], processes=2)
+    assert here == [len(mesh.planes.section_z)]  # made again, in this process, at the build's planes
+    two_steps = build_report(mesh.part, params, file_name=str(path), dst=mesh, baselines=[])
+    assert len(report.planes) == len(mesh.planes.z)
+    assert _numbers(report) == _numbers(two_steps)
+
+
+def test_a_crash_while_computing_the_reference_in_a_helper_ends_the_job_cleanly(hemisphere, monkeypatch):
+    """OCCT dying in the job's reference helper is an error saying so, not a dead job process."""
+    import faulthandler
+    import os
+    import signal
+
+    from worker.dst import report as report_mod
+    from worker.dst.errors import TessellationError
+    from worker.dst.forked import fork_available
+    from worker.dst.report import slice_and_report
+
+    if not fork_available():
+        pytest.skip("fork is used on Linux only")
+    path, _, _, _ = hemisphere
+    main = os.getpid()
+    real = report_mod.exact_sections
+
+    def crash(*args, **kwargs):
+        if os.getpid() != main:
+            faulthandler.disable()
+            os.kill(os.getpid(), signal.SIGSEGV)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(report_mod, "exact_sections", crash)
+    with pytest.raises(TessellationError, match=r"exact reference.*signal 11"):
+        slice_and_report(path, SliceParams(layer_height=0.2), baselines=[], processes=2)
 
 
 def test_a_crash_while_meshing_a_baseline_ends_the_report_cleanly(hemisphere, monkeypatch):
