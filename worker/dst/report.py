@@ -23,7 +23,7 @@ from OCP.BRepMesh import BRepMesh_IncrementalMesh
 from OCP.BRepTools import BRepTools
 from OCP.gp import gp_Pnt
 from OCP.ShapeAnalysis import ShapeAnalysis_Surface
-from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE, TopAbs_REVERSED
+from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE
 from OCP.TopExp import TopExp_Explorer
 from OCP.TopLoc import TopLoc_Location
 from OCP.TopoDS import TopoDS, TopoDS_Face
@@ -59,7 +59,8 @@ from worker.dst.pipeline import (
 from worker.dst.planes import plan_planes
 from worker.dst.reference import ExactSections, closed_length, exact_sections
 from worker.dst.step_io import LoadedPart, read_step
-from worker.dst.topomesh import max_tolerance
+from worker.dst.stl_io import merge_equal_vertices
+from worker.dst.topomesh import face_nodes, face_triangles, max_tolerance
 
 REPORT_VERSION = "1.1"  # 1.1: layers carry flat_side (flat faces on planes measured on both sides)
 Progress = Callable[[str, float], None]
@@ -101,19 +102,13 @@ def conventional_mesh(
         tri = BRep_Tool.Triangulation_s(face, loc)
         if tri is None:
             raise TessellationError("BRepMesh left a face without triangles")
-        trsf = loc.Transformation()
-        n = tri.NbNodes()
-        xyz.append(np.array([tri.Node(i).Transformed(trsf).Coord() for i in range(1, n + 1)]))
-        t = np.array([tri.Triangle(i).Get() for i in range(1, tri.NbTriangles() + 1)], dtype=np.int64) - 1
-        if face.Orientation() == TopAbs_REVERSED:
-            t = t[:, ::-1]
-        tris.append(t + off)
-        off += n
+        xyz.append(face_nodes(tri, loc))
+        tris.append(face_triangles(face, tri) + off)
+        off += len(xyz[-1])
         exp.Next()
     BRepTools.Clean_s(comp)
-    v32 = np.concatenate(xyz).astype(np.float32)
-    uniq, inv = np.unique(v32, axis=0, return_inverse=True)
-    t = inv.reshape(-1)[np.concatenate(tris)]
+    uniq, inv = merge_equal_vertices(np.concatenate(xyz))
+    t = inv[np.concatenate(tris)]
     t = t[(t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 2] != t[:, 0])]
     return uniq.astype(np.float64), t
 

@@ -208,17 +208,25 @@ def build_topomesh(
 def _face_mesh(face: TopoDS_Face, tri, loc: TopLoc_Location):
     """A face's BRepMesh triangulation: node positions (n, 3) with the location applied, their
     (u, v) (n, 2) and the triangles (m, 3) as 0-based node ids, counter-clockwise from outside."""
+    uvs = np.array([tri.UVNode(i).Coord() for i in range(1, tri.NbNodes() + 1)], dtype=np.float64)
+    return face_nodes(tri, loc), uvs.reshape(-1, 2), face_triangles(face, tri)
+
+
+def face_nodes(tri, loc: TopLoc_Location) -> np.ndarray:
+    """The triangulation's node positions (n, 3), mm, with the face's location applied."""
     n = tri.NbNodes()
     if loc.IsIdentity():
-        pts = np.array([tri.Node(i).Coord() for i in range(1, n + 1)], dtype=np.float64).reshape(-1, 3)
-    else:
-        trsf = loc.Transformation()
-        pts = np.array([tri.Node(i).Transformed(trsf).Coord() for i in range(1, n + 1)]).reshape(-1, 3)
-    uvs = np.array([tri.UVNode(i).Coord() for i in range(1, n + 1)], dtype=np.float64).reshape(-1, 2)
+        return np.array([tri.Node(i).Coord() for i in range(1, n + 1)], dtype=np.float64).reshape(-1, 3)
+    trsf = loc.Transformation()
+    return np.array([tri.Node(i).Transformed(trsf).Coord() for i in range(1, n + 1)]).reshape(-1, 3)
+
+
+def face_triangles(face: TopoDS_Face, tri) -> np.ndarray:
+    """The triangulation's triangles (m, 3) as 0-based node ids, counter-clockwise seen from outside
+    the solid (reversed for a reversed face)."""
     t = np.array([tri.Triangle(i).Get() for i in range(1, tri.NbTriangles() + 1)], dtype=np.int64) - 1
-    if face.Orientation() == TopAbs_REVERSED:
-        t = t[:, ::-1]
-    return pts, uvs, t
+    t = t.reshape(-1, 3)
+    return t[:, ::-1] if face.Orientation() == TopAbs_REVERSED else t
 
 
 def _drop_unused_nodes(xyz: np.ndarray, tris: np.ndarray, glob: np.ndarray):

@@ -180,6 +180,32 @@ def test_3mf_holds_the_same_float32_mesh_as_the_stl(hemisphere, tmp_path):
     assert np.array_equal(z32, hemisphere.planes.z32[hemisphere.vertex_plane[ring]])
 
 
+def test_stl_vertex_merge_joins_exactly_the_equal_float32_points():
+    """Points with equal float32 coordinates (-0.0 and 0.0 alike) become one vertex, any other
+    difference (one bit) keeps them apart; the same partition as ``np.unique(axis=0)``."""
+    from worker.dst.stl_io import merge_equal_vertices
+
+    rng = np.random.default_rng(3)
+    base = rng.uniform(-5, 5, (300, 3)).astype(np.float32)
+    base[::7] = np.round(base[::7])  # some zeros and integers
+    pts = base[rng.integers(0, len(base), 3000)]
+    nudged = pts.copy()
+    nudged[::50, 1] = np.nextafter(nudged[::50, 1], np.float32(np.inf))  # one bit apart: distinct
+    pts = np.concatenate(
+        [pts, nudged, -np.zeros((4, 3), dtype=np.float32), np.zeros((2, 3), dtype=np.float32)]
+    )
+    uniq, inv = merge_equal_vertices(pts)
+    assert uniq.dtype == np.float32 and np.array_equal(uniq[inv], pts + np.float32(0.0))
+    ref, ref_inv = np.unique(pts + np.float32(0.0), axis=0, return_inverse=True)
+    assert len(uniq) == len(ref)
+    # the same partition: equal ids exactly where np.unique's ids are equal
+    pairs = np.unique(np.column_stack([inv, ref_inv.reshape(-1)]), axis=0)
+    assert len(pairs) == len(ref)
+    assert (uniq == 0).all(axis=1).sum() == 1  # -0.0 and 0.0: one vertex
+    empty, none = merge_equal_vertices(np.zeros((0, 3), dtype=np.float32))
+    assert empty.shape == (0, 3) and none.shape == (0,)
+
+
 def test_jobs_beyond_the_triangle_limit_are_refused_before_sampling(make_step, monkeypatch):
     from worker.dst import constants
     from worker.dst.errors import ResourceLimitExceeded
