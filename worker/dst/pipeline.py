@@ -15,11 +15,11 @@ from OCP.BRepBndLib import BRepBndLib
 
 from worker.dst import constants as C
 from worker.dst.errors import ResourceLimitExceeded, TessellationError, UnmeshedFaceError
-from worker.dst.lowest import snap_extremes, snap_local_extremes
+from worker.dst.lowest import snap_extremes
 from worker.dst.meshops import edge_defects, signed_volume
 from worker.dst.params import SliceParams
 from worker.dst.planes import PlanePlan, plan_planes
-from worker.dst.ridges import add_ridge_rows
+from worker.dst.ridges import prepare_extremes
 from worker.dst.sampling import RingSampler, SamplingStats, VertexPool
 from worker.dst.sections import cut_topology
 from worker.dst.step_io import LoadedPart, heal_wires, read_step
@@ -142,8 +142,9 @@ def slice_part(
     height = zmax - zmin
     planes = plan_planes(height=height, params=params)
     world = zmin + planes.section_z
-    local_extremes = sum(snap_local_extremes(mesh, world) for mesh in meshes)
-    ridge_nodes = sum(add_ridge_rows(mesh, world) for mesh in meshes)
+    local_extremes, ridge_nodes = (
+        int(n) for n in np.sum([prepare_extremes(m, world) for m in meshes], axis=0)
+    )
     timings["extremes"] = time.perf_counter() - t
 
     # half the float32 spacing at each plane: a node closer than that is written onto the plane

@@ -27,9 +27,9 @@ from OCP.TopoDS import TopoDS
 
 from worker.dst import constants as C
 from worker.dst.errors import TessellationError
-from worker.dst.lowest import snap_extremes, snap_local_extremes
+from worker.dst.lowest import snap_extremes
 from worker.dst.pipeline import bbox_diagonal
-from worker.dst.ridges import add_ridge_rows
+from worker.dst.ridges import prepare_extremes
 from worker.dst.sampling import RingSampler, VertexPool
 from worker.dst.sections import cut_topology
 from worker.dst.step_io import LoadedPart
@@ -103,8 +103,7 @@ def exact_sections(
         heights = heights(zmax - zmin)
     world = zmin + np.asarray(heights, dtype=np.float64)
     for mesh in meshes:
-        snap_local_extremes(mesh, world)
-        add_ridge_rows(mesh, world)
+        prepare_extremes(mesh, world)
     n_planes = len(world)
     # as in the DST build: a node within half a float32 step of a plane is on it (what a slicer sees)
     noise = 0.5 * np.spacing(np.abs(np.asarray(heights, dtype=np.float32))).astype(np.float64)

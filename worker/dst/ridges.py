@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 from OCP.GeomAbs import GeomAbs_Plane
 
-from worker.dst.lowest import face_optimum
+from worker.dst.lowest import face_optimum, snap_local_extremes
 from worker.dst.topomesh import TopoMesh
 
 # a plane this many topology deflections beside a face's highest (lowest) node may miss its sliver
@@ -35,6 +35,13 @@ _LINE_SAMPLES = 9  # points along a candidate line checked for constant height
 _LINE_TOL_MM = 1e-9  # ... within this of the extreme's height: a horizontal line
 # a node this close to the line, relative to its edge's extent in the line's parameter, is on it
 _ON_LINE_REL = 1e-6
+
+
+def prepare_extremes(mesh: TopoMesh, planes: np.ndarray) -> tuple[int, int]:
+    """What the planes need of a topology mesh's local extremes, in place, in order: apexes and
+    dimples near a plane snapped onto their exact point (``lowest.snap_local_extremes``), then node
+    rows along ridges and valleys near a plane (``add_ridge_rows``). Returns (snapped, added) nodes."""
+    return snap_local_extremes(mesh, planes), add_ridge_rows(mesh, planes)
 
 
 def add_ridge_rows(mesh: TopoMesh, planes: np.ndarray) -> int:

@@ -259,7 +259,7 @@ def test_a_plane_just_below_a_local_apex_gets_its_small_loop(make_step, monkeypa
     assert near.sum() >= 3, "the small loop under the apex is missing"
     np.testing.assert_allclose(np.linalg.norm(pts[near, :2] - centre, axis=1), expected, atol=1e-5)
     # without the snap the topology mesh's highest dome node is below the plane and the loop is lost
-    monkeypatch.setattr("worker.dst.pipeline.snap_local_extremes", lambda mesh, planes: 0)
+    monkeypatch.setattr("worker.dst.ridges.snap_local_extremes", lambda mesh, planes: 0)
     plain = slice_step(path, params)
     assert (np.linalg.norm(ring(plain)[:, :2] - centre, axis=1) < 1.0).sum() == 0
 
@@ -294,7 +294,7 @@ def test_a_plane_just_below_the_top_of_a_tilted_rim_gets_its_loop(make_step, mon
     assert (on_cap | on_wall).all()
     assert (radial[on_cap] <= 5.0 + 1e-5).all() and (axial[on_wall] <= 4.0 + 1e-5).all()
     assert on_cap.any() and on_wall.any()
-    monkeypatch.setattr("worker.dst.pipeline.snap_local_extremes", lambda mesh, planes: 0)
+    monkeypatch.setattr("worker.dst.ridges.snap_local_extremes", lambda mesh, planes: 0)
     assert len(lens(slice_step(path, params))) == 0
 
 
