@@ -13,8 +13,8 @@ Targets (issue 2): the B-spline hemisphere R = 20 mm at h = 0.2 mm under 1 s; ``
 h = 0.2 mm within 3x the conventional mesh's time; memory growing with the part, not planes squared.
 Target (issue 3): the deviation report with the three default baselines within 3x the DST build time
 (second table: the report's seconds, of which the exact reference and building the baselines; and
-the job's, DST and report together as ``slice_and_report`` runs them, the report's OCCT work started
-before the DST build). The report's CPU seconds (its helper processes included) against the DST
+the job's, DST and report together as ``slice_and_report`` runs them, the baselines and the exact
+reference started before the DST build, in two helpers at a lower priority). The report's CPU seconds (its helper processes included) against the DST
 build's show its work independently of the machine's speed: on c cores the report cannot take less
 than CPU / c seconds, the "floor" column.
 """
@@ -71,8 +71,8 @@ def _dst(path: str, layer: float, q, with_report: bool = True) -> None:
 
 
 def _job(path: str, layer: float, q) -> None:
-    """DST and its report as a job runs them (``slice_and_report``: the baselines start before the
-    DST build, in a helper process)."""
+    """DST and its report as a job runs them (``slice_and_report``: the baselines and the exact
+    reference start before the DST build, in two helper processes)."""
     from worker.dst.baselines import DEFAULT_BASELINES
     from worker.dst.params import SliceParams
     from worker.dst.report import slice_and_report
@@ -220,8 +220,8 @@ def main() -> None:
         )
     print()
     print("The deviation report (3 default baselines) against the DST build it measures: run after it")
-    print("(report s), and as a job runs both (job s: the baselines' OCCT meshing started before the DST")
-    print("build, in a helper; its added time over the DST build alone, job - DST, against DST).")
+    print("(report s), and as a job runs both (job s: the baselines and the exact reference started before")
+    print("the DST build, in two helpers; its added time over the DST build alone, job - DST, against DST).")
     print(f"CPU: the report's CPU seconds (helpers included) against the DST build's; on {cores} core(s)")
     print("the report cannot take less than its CPU seconds / cores (floor, against DST's wall time).")
     head = (
