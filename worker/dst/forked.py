@@ -107,16 +107,18 @@ class Task:
         with os.fdopen(self._fd, "rb") as f:  # the child writes everything, then exits
             data = f.read()
         self._fd = None
-        _, status = os.waitpid(self.pid, 0)
-        if not data:
-            how = (
-                f"killed by signal {os.WTERMSIG(status)}"
-                if os.WIFSIGNALED(status)
-                else f"exit status {os.waitstatus_to_exitcode(status)}"
-            )
-            self._outcome = (False, TaskDied(f"a helper process ended without a result ({how})"))
-        else:
+        if data:  # the child has sent its result and is exiting: reaped later, not waited for here
             self._outcome = pickle.loads(data)
+            _exiting.add(self.pid)
+            reap_exited()
+            return
+        _, status = os.waitpid(self.pid, 0)
+        how = (
+            f"killed by signal {os.WTERMSIG(status)}"
+            if os.WIFSIGNALED(status)
+            else f"exit status {os.waitstatus_to_exitcode(status)}"
+        )
+        self._outcome = (False, TaskDied(f"a helper process ended without a result ({how})"))
 
     def kill(self) -> None:
         if self._outcome is None and self.pid is not None:
@@ -125,6 +127,22 @@ class Task:
             except ProcessLookupError:
                 pass
             self._collect()
+
+
+# Children that sent their result and are exiting: a large process takes milliseconds to tear down
+# its memory, which the parent need not wait for before it starts the next task.
+_exiting: set[int] = set()
+
+
+def reap_exited(*, block: bool = False) -> None:
+    """Reap the children that sent their results (those that have exited; ``block``: all)."""
+    for pid in list(_exiting):
+        try:
+            done, _ = os.waitpid(pid, 0 if block else os.WNOHANG)
+        except ChildProcessError:  # reaped by someone else
+            done = pid
+        if done:
+            _exiting.discard(pid)
 
 
 def _run_child(fn: Callable[..., Any], args: tuple, w: int) -> None:
@@ -181,3 +199,4 @@ class TaskGroup:
         for t in self._running:
             t.kill()  # no-op for those already collected by result()
         self._running.clear()
+        reap_exited(block=True)

@@ -91,6 +91,17 @@ def test_a_niced_task_runs_at_a_lower_priority_and_leaves_this_process_as_it_was
     assert os.nice(0) == mine
 
 
+@needs_fork
+def test_children_that_sent_their_results_are_reaped_by_the_end_of_the_group():
+    """A child's result is taken without waiting for it to exit; by the group's end every child has
+    been reaped (no zombies left behind)."""
+    with TaskGroup(forked=True, limit=2) as tasks:
+        pids = [t.result()[0] for t in [tasks.submit(_pid_and_sum, np.ones(3)) for _ in range(5)]]
+    for pid in pids:
+        with pytest.raises(ChildProcessError):
+            os.waitpid(pid, os.WNOHANG)
+
+
 def test_inline_tasks_run_in_this_process():
     with TaskGroup(forked=False) as tasks:
         assert not tasks.forked
