@@ -72,18 +72,21 @@ def _face_extreme(
     mesh: TopoMesh, f: int, tri_mask: np.ndarray, sign: float
 ) -> list[tuple[float, np.ndarray]]:
     fe = mesh.faces[f]
-    sel = np.flatnonzero(tri_mask & (mesh.tri_face == f))
-    corners = mesh.tris[sel].ravel()
-    uvs = mesh.tri_uv[sel].reshape(-1, 2)
-    k = int(np.argmin(sign * mesh.xyz[corners, 2]))
-    u, v = face_optimum(fe, uvs[k], sign)
+    u, v = face_optimum_from_nodes(mesh, f, np.flatnonzero(tri_mask & (mesh.tri_face == f)), sign)
     if not fe.contains(u, v):
         return []
     p = np.array(fe.point(u, v))
     return [(sign * p[2], p)]
 
 
-def face_optimum(fe, uv0: np.ndarray, sign: float) -> tuple[float, float]:
+def face_optimum_from_nodes(mesh: TopoMesh, f: int, sel: np.ndarray, sign: float) -> tuple[float, float]:
+    """``_face_optimum`` of face ``f`` from the lowest (sign=+1) or highest (sign=-1) corner of its
+    triangles ``sel``, at that corner's (u, v) in its triangle."""
+    z = mesh.xyz[mesh.tris[sel].ravel(), 2]
+    return _face_optimum(mesh.faces[f], mesh.tri_uv[sel].reshape(-1, 2)[int(np.argmin(sign * z))], sign)
+
+
+def _face_optimum(fe, uv0: np.ndarray, sign: float) -> tuple[float, float]:
     """(u, v) of the face's lowest (sign=+1) or highest (sign=-1) point reached from ``uv0`` by bounded
     L-BFGS on the untrimmed surface (the caller checks the trim)."""
 
@@ -166,7 +169,7 @@ def _snap_node(mesh: TopoMesh, node: int, sign: float) -> int:
         _move_node(mesh, node, p)
         return 1
     fe = mesh.faces[int(faces[0])]
-    u, v = face_optimum(fe, mesh.tri_uv[tri[0], corner[0]], sign)
+    u, v = _face_optimum(fe, mesh.tri_uv[tri[0], corner[0]], sign)
     p = np.array(fe.point(u, v))
     if sign * p[2] >= sign * old[2] or np.linalg.norm(p - old) > reach or not fe.contains(u, v):
         return 0

@@ -142,9 +142,9 @@ def slice_part(
     height = zmax - zmin
     planes = plan_planes(height=height, params=params)
     world = zmin + planes.section_z
-    local_extremes, ridge_nodes = (
-        int(n) for n in np.sum([prepare_extremes(m, world) for m in meshes], axis=0)
-    )
+    prepared = [prepare_extremes(mesh, world) for mesh in meshes]
+    local_extremes = sum(snapped for snapped, _ in prepared)
+    ridge_nodes = sum(added for _, added in prepared)
     timings["extremes"] = time.perf_counter() - t
 
     # half the float32 spacing at each plane: a node closer than that is written onto the plane

@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 from OCP.GeomAbs import GeomAbs_Plane
 
-from worker.dst.lowest import face_optimum, snap_local_extremes
+from worker.dst.lowest import face_optimum_from_nodes, snap_local_extremes
 from worker.dst.topomesh import TopoMesh
 
 # a plane this many topology deflections beside a face's highest (lowest) node may miss its sliver
@@ -84,8 +84,7 @@ def _extreme_line(mesh: TopoMesh, f: int, sign: float) -> tuple[int, float, floa
     fe = mesh.faces[f]
     sel = np.flatnonzero(mesh.tri_face == f)
     uvs = mesh.tri_uv[sel].reshape(-1, 2)
-    z = mesh.xyz[mesh.tris[sel].ravel(), 2]
-    u, v = face_optimum(fe, uvs[int(np.argmin(sign * z))], sign)
+    u, v = face_optimum_from_nodes(mesh, f, sel, sign)
     height = fe.point(u, v)[2]
     lo, hi = uvs.min(axis=0), uvs.max(axis=0)
     for axis, value in ((0, u), (1, v)):
