@@ -603,19 +603,15 @@ async def get_mesh(
 
 def _converted_copy(request: Request, job: Job, format: str) -> Path:
     """The ASCII STL or the 3MF, made once from the binary STL and kept beside it."""
-    import numpy as np
 
-    from worker.dst.stl_io import STL_RECORD, merge_equal_vertices, write_3mf, write_stl
+    from worker.dst.stl_io import binary_stl_corners, merge_equal_vertices, write_3mf, write_stl
 
     art = _artifacts(request)
     out = art.path(job.id, "mesh.3mf" if format == "3mf" else "mesh_ascii.stl")
     if not out.is_file():
         out.parent.mkdir(parents=True, exist_ok=True)
         with art.open(job.id, "mesh.stl") as fh:
-            raw = np.frombuffer(fh.read(), dtype=np.uint8)[84:]
-        rec = raw.view(STL_RECORD)
-        v = rec["v"].reshape(-1, 3)
-        uniq, inv = merge_equal_vertices(v)
+            uniq, inv = merge_equal_vertices(binary_stl_corners(fh.read()))
         name = Path(job.file_name).stem or "dst"
         if format == "3mf":
             write_3mf(out, uniq, inv.reshape(-1, 3), name=name)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import multiprocessing as mp
+import queue
 import resource
 import statistics
 import sys
@@ -145,7 +146,18 @@ def measure(fn, path: str, layer: float, *extra) -> dict:
     q = ctx.Queue()
     p = ctx.Process(target=fn, args=(path, layer, q, *extra))
     p.start()
-    out = q.get(timeout=3600)
+    deadline = time.monotonic() + 3600
+    out = None
+    while out is None:  # a measurement that dies (its traceback on stderr) ends the run, not hangs it
+        alive = p.is_alive() and time.monotonic() < deadline
+        try:
+            out = q.get(timeout=1.0 if alive else 5.0)  # (a result sent just before the end)
+        except queue.Empty:
+            if not alive:
+                p.kill()
+                break
+    if out is None:
+        raise SystemExit(f"{fn.__name__} on {path} ended without a result (exit code {p.exitcode})")
     p.join()
     return out
 

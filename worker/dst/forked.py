@@ -10,6 +10,12 @@ OCCT's thread pool does not survive a fork (its worker threads exist only in the
 OCCT algorithm in the child (``BRepMesh_IncrementalMesh`` with ``isInParallel``) would wait for them
 forever. Callers ask OCCT for serial work in a child; ``TaskGroup.forked`` tells them which it is.
 
+A task whose function is a generator sends each value it yields as soon as it is made; the parent
+takes them with ``Task.items()`` while the child goes on, then the generator's return value with
+``result()``. The values go through a temporary file and only their places through the pipe: a
+write to a full pipe would stop the child until its parent reads, and the parent may be busy for
+long (a thread of the child writing to the pipe would not help: OCCT holds the GIL while it works).
+
 Where fork is unavailable or unsafe (anything but Linux: macOS system frameworks are not fork-safe)
 or switched off, every task runs inline, at once, in the caller's process.
 """
@@ -17,13 +23,18 @@ or switched off, every task runs inline, at once, in the caller's process.
 from __future__ import annotations
 
 import ctypes
+import inspect
 import os
 import pickle
 import select
 import signal
+import struct
 import sys
+import tempfile
 import traceback
-from collections.abc import Callable
+from collections import deque
+from collections.abc import Callable, Iterator
+from types import GeneratorType
 from typing import Any
 
 
@@ -55,6 +66,13 @@ def die_with_parent() -> None:
         os._exit(1)
 
 
+# Messages from a child: a length (8 bytes) and a pickled (kind, value): values a generator yielded,
+# then its outcome, the function's return value or its exception.
+_FRAME = struct.Struct("<Q")
+_ITEM, _VALUE, _RETURN, _RAISE = 0, 1, 2, 3  # a value: its place in the spool file, or itself
+_READ_BYTES = 1 << 20
+
+
 class Task:
     """One function call, running in a forked child or already run inline."""
 
@@ -62,12 +80,20 @@ class Task:
         self.pid: int | None = None
         self._fd: int | None = None
         self._outcome: tuple[bool, Any] | None = None
+        self._items: deque[Any] = deque()  # yielded values not taken yet
+        self._buf = bytearray()
+        self._spool = None  # a generator's values, written by the child
         if not forked:
             try:
-                self._outcome = (True, fn(*args))
+                value = fn(*args)
+                if isinstance(value, GeneratorType):
+                    value = yield_from(value, self._items.append)
+                self._outcome = (True, value)
             except Exception as exc:  # re-raised by result(), where a forked task's would be
                 self._outcome = (False, exc)
             return
+        if inspect.isgeneratorfunction(fn):
+            self._spool = tempfile.TemporaryFile(prefix="dst-task-")  # gone when closed: no leftovers
         r, w = os.pipe()
         pid = os.fork()
         if pid == 0:  # the child: never returns into the caller's code
@@ -76,7 +102,7 @@ class Task:
                 die_with_parent()
                 if nice:
                     os.nice(nice)
-                _run_child(fn, args, w)
+                _run_child(fn, args, w, self._spool)
             finally:
                 os._exit(0)
         os.close(w)
@@ -92,26 +118,69 @@ class Task:
 
     def ready(self) -> bool:
         """The result can be collected without waiting (the child has finished its work)."""
-        return self.done() or bool(select.select([self._fd], [], [], 0)[0])
+        if not self.done():
+            self._read(block=False)
+        return self.done()
 
     def result(self) -> Any:
         """The function's return value; its exception is raised here."""
-        if self._outcome is None:
-            self._collect()
+        while self._outcome is None:
+            self._read(block=True)
         ok, value = self._outcome
         if ok:
             return value
         raise value
 
-    def _collect(self) -> None:
-        with os.fdopen(self._fd, "rb") as f:  # the child writes everything, then exits
-            data = f.read()
-        self._fd = None
-        if data:  # the child has sent its result and is exiting: reaped later, not waited for here
-            self._outcome = pickle.loads(data)
-            _exiting.add(self.pid)
-            reap_exited()
-            return
+    def items(self) -> Iterator[Any]:
+        """A generator function's values, each as soon as the child has sent it (none for a plain
+        function). Ends when the child has sent its outcome (or died: ``result()`` says how)."""
+        while True:
+            while self._items:
+                yield self._items.popleft()
+            if self._outcome is not None:
+                return
+            self._read(block=True)
+
+    def _read(self, *, block: bool) -> None:
+        """Take what the child has written: without waiting, or (``block``) until at least one more
+        message or its end."""
+        while self._outcome is None:
+            if not block and not select.select([self._fd], [], [], 0)[0]:
+                return
+            chunk = os.read(self._fd, _READ_BYTES)
+            if not chunk:
+                self._ended()
+                return
+            self._buf += chunk
+            if self._parse() and block:
+                return
+
+    def _parse(self) -> bool:
+        """Unpack the whole messages in the buffer; whether there were any."""
+        got, pos = False, 0
+        while len(self._buf) - pos >= _FRAME.size:
+            (n,) = _FRAME.unpack_from(self._buf, pos)
+            end = pos + _FRAME.size + n
+            if len(self._buf) < end:
+                break
+            kind, value = pickle.loads(self._buf[pos + _FRAME.size : end])
+            pos, got = end, True
+            if kind == _ITEM:  # its place in the spool file
+                self._items.append(pickle.loads(_read_at(self._spool.fileno(), *value)))
+            elif kind == _VALUE:
+                self._items.append(value)
+            else:  # the last message: the child is exiting, reaped later, not waited for here
+                self._outcome = (kind == _RETURN, value)
+                self._close()
+                _exiting.add(self.pid)
+                reap_exited()
+                break
+        del self._buf[:pos]
+        return got
+
+    def _ended(self) -> None:
+        """The pipe closed before the outcome came: the child died."""
+        self._close()
         _, status = os.waitpid(self.pid, 0)
         how = (
             f"killed by signal {os.WTERMSIG(status)}"
@@ -120,13 +189,32 @@ class Task:
         )
         self._outcome = (False, TaskDied(f"a helper process ended without a result ({how})"))
 
+    def _close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+        if self._spool is not None:
+            self._spool.close()
+            self._spool = None
+        self._buf = bytearray()
+
     def kill(self) -> None:
         if self._outcome is None and self.pid is not None:
             try:
                 os.kill(self.pid, signal.SIGKILL)
             except ProcessLookupError:
                 pass
-            self._collect()
+            while self._outcome is None:
+                self._read(block=True)
+
+
+def yield_from(gen: GeneratorType, put: Callable[[Any], None]) -> Any:
+    """Run a generator to its end, ``put`` each value it yields; its return value."""
+    while True:
+        try:
+            put(next(gen))
+        except StopIteration as stop:
+            return stop.value
 
 
 # Children that sent their result and are exiting: a large process takes milliseconds to tear down
@@ -145,19 +233,71 @@ def reap_exited(*, block: bool = False) -> None:
             _exiting.discard(pid)
 
 
-def _run_child(fn: Callable[..., Any], args: tuple, w: int) -> None:
+def _run_child(fn: Callable[..., Any], args: tuple, w: int, spool) -> None:
+    out = os.fdopen(w, "wb")
     try:
-        outcome: tuple[bool, Any] = (True, fn(*args))
+        value = fn(*args)
+        if isinstance(value, GeneratorType):
+            end = 0
+
+            def put(item: Any) -> None:  # the value into the spool, its place through the pipe
+                nonlocal end
+                if spool is None:  # not a generator function (a wrapper): through the pipe, waiting
+                    out.write(_frame(_VALUE, item))  # for the parent to read it
+                    out.flush()
+                    return
+                data = _dumps(item)
+                _write_at(spool.fileno(), data, end)
+                out.write(_frame(_ITEM, (end, len(data))))
+                out.flush()
+                end += len(data)
+
+            value = yield_from(value, put)
+        kind: int = _RETURN
     except BaseException as exc:  # everything goes back to the parent, which raises it
         if not isinstance(exc, MemoryError):  # a note needs memory
             exc.add_note("in a forked helper process:\n" + traceback.format_exc())
-        outcome = (False, exc)
+        kind, value = _RAISE, exc
     try:
-        data = pickle.dumps(outcome, protocol=pickle.HIGHEST_PROTOCOL)
-    except Exception as exc:  # an unpicklable result or exception: say what it was
-        data = pickle.dumps((False, TaskDied(f"a helper's result could not be sent back: {exc!r}")))
-    with os.fdopen(w, "wb") as f:
-        f.write(data)
+        frame = _frame(kind, value)
+    except _Unpicklable as exc:  # an unpicklable value or exception: say what it was
+        frame = _frame(_RAISE, TaskDied(f"a helper's result could not be sent back: {exc}"))
+    out.write(frame)
+    out.close()
+
+
+class _Unpicklable(Exception):
+    pass
+
+
+def _dumps(value: Any) -> bytes:
+    try:
+        return pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL)
+    except Exception as exc:
+        raise _Unpicklable(repr(exc)) from None
+
+
+def _frame(kind: int, value: Any) -> bytes:
+    data = _dumps((kind, value))
+    return _FRAME.pack(len(data)) + data
+
+
+def _write_at(fd: int, data: bytes, offset: int) -> None:
+    view = memoryview(data)
+    while view:
+        n = os.pwrite(fd, view, offset)
+        view, offset = view[n:], offset + n
+
+
+def _read_at(fd: int, offset: int, n: int) -> bytes:
+    parts = []
+    while n > 0:
+        chunk = os.pread(fd, n, offset)
+        if not chunk:
+            raise TaskDied("a helper's value was cut short in its spool file")
+        parts.append(chunk)
+        offset, n = offset + len(chunk), n - len(chunk)
+    return b"".join(parts)
 
 
 class TaskGroup:
@@ -184,13 +324,15 @@ class TaskGroup:
         return task
 
     def _wait_one(self) -> None:
-        """Block until one running child has finished writing, and collect it."""
-        ready, _, _ = select.select([t.fileno for t in self._running], [], [])
-        for t in list(self._running):
-            if t.fileno in ready:
-                t._collect()
-                self._running.remove(t)
-                return
+        """Block until one running child has sent its outcome (taking what the others send)."""
+        while True:
+            ready, _, _ = select.select([t.fileno for t in self._running], [], [])
+            for t in list(self._running):
+                if t.fileno in ready:
+                    t._read(block=False)
+                    if t.done():
+                        self._running.remove(t)
+                        return
 
     def __enter__(self) -> TaskGroup:
         return self

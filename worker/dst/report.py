@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import math
 import os
+import tempfile
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -23,6 +24,7 @@ from OCP.BRepMesh import BRepMesh_IncrementalMesh
 from OCP.BRepTools import BRepTools
 from OCP.gp import gp_Pnt
 from OCP.ShapeAnalysis import ShapeAnalysis_Surface
+from OCP.StlAPI import StlAPI_Writer
 from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE
 from OCP.TopExp import TopExp_Explorer
 from OCP.TopLoc import TopLoc_Location
@@ -59,8 +61,8 @@ from worker.dst.pipeline import (
 from worker.dst.planes import plan_planes
 from worker.dst.reference import ExactSections, closed_length, exact_sections
 from worker.dst.step_io import LoadedPart, read_step
-from worker.dst.stl_io import merge_equal_vertices
-from worker.dst.topomesh import face_nodes, face_triangles, max_tolerance
+from worker.dst.stl_io import binary_stl_corners, merge_equal_vertices
+from worker.dst.topomesh import max_tolerance
 
 REPORT_VERSION = "1.1"  # 1.1: layers carry flat_side (flat faces on planes measured on both sides)
 Progress = Callable[[str, float], None]
@@ -88,59 +90,61 @@ REFERENCE_GAP_PLANES = 20
 def conventional_mesh(
     part: LoadedPart, preset: Preset, *, parallel: bool = True
 ) -> tuple[np.ndarray, np.ndarray]:
-    """OCCT's BRepMesh of the part at ``preset``: vertices merged as an STL reader merges them (equal
-    float32 coordinates), triangles oriented outward. ``parallel``: faces on OCCT's thread pool, as
-    slicers mesh them (not in a forked process: see ``forked``); the mesh is the same either way."""
+    """OCCT's BRepMesh of the part at ``preset``, as a slicer gets it: written by OCCT's STL writer
+    and read back (float32 vertices, equal ones merged as an STL reader merges them, triangles
+    oriented outward), degenerate triangles dropped. ``parallel``: faces on OCCT's thread pool, as
+    slicers mesh them (not in a forked process: see ``forked``); the mesh is the same either way.
+    (The writer copies the triangulation in C++; node by node through OCP takes ~0.1 s per 50k
+    triangles.)"""
     comp = part.compound
     BRepTools.Clean_s(comp)  # otherwise a finer triangulation already on the faces is reused
     BRepMesh_IncrementalMesh(comp, preset.linear, False, preset.angular, parallel)
-    xyz, tris, off = [], [], 0
-    exp = TopExp_Explorer(comp, TopAbs_FACE)
-    while exp.More():
-        face = TopoDS.Face(exp.Current())
-        loc = TopLoc_Location()
-        tri = BRep_Tool.Triangulation_s(face, loc)
-        if tri is None:
-            raise TessellationError("BRepMesh left a face without triangles")
-        xyz.append(face_nodes(tri, loc))
-        tris.append(face_triangles(face, tri) + off)
-        off += len(xyz[-1])
-        exp.Next()
-    BRepTools.Clean_s(comp)
-    uniq, inv = merge_equal_vertices(np.concatenate(xyz))
-    t = inv[np.concatenate(tris)]
-    t = t[(t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 2] != t[:, 0])]
-    return uniq.astype(np.float64), t
+    try:
+        exp = TopExp_Explorer(comp, TopAbs_FACE)
+        while exp.More():  # the writer would skip such a face, leaving a hole
+            if BRep_Tool.Triangulation_s(TopoDS.Face(exp.Current()), TopLoc_Location()) is None:
+                raise TessellationError("BRepMesh left a face without triangles")
+            exp.Next()
+        with tempfile.TemporaryDirectory(prefix="dst-baseline-") as tmp:
+            path = os.path.join(tmp, "baseline.stl")
+            writer = StlAPI_Writer()
+            writer.ASCIIMode = False
+            if not writer.Write(comp, path):
+                raise TessellationError("OCCT could not write the conventional mesh")
+            with open(path, "rb") as fh:
+                v, inv = merge_equal_vertices(binary_stl_corners(fh.read()))
+    finally:
+        BRepTools.Clean_s(comp)
+    t = inv.reshape(-1, 3)
+    return v.astype(np.float64), t[(t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 2] != t[:, 0])]
 
 
 @dataclass
 class OcctSide:
-    """What the report needs from OCCT besides the exact sections."""
+    """What the report needs from OCCT besides the exact sections and the baselines."""
 
-    baselines: list[MeshInput]
     xy_box: tuple[tuple[float, float], tuple[float, float]]
     volume_mm3: float
 
 
-def _occt_side(part: LoadedPart, baselines: Sequence[str], parallel: bool) -> OcctSide:
-    """The conventional baseline meshes, the part's exact x/y extent and its exact volume."""
-    out = []
+def _occt_side(part: LoadedPart, baselines: Sequence[str], parallel: bool) -> Iterator[MeshInput]:
+    """The conventional baseline meshes, each yielded as soon as it is made (in a helper, the report
+    measures the first ones while OCCT makes the next); returns the part's exact x/y extent and its
+    exact volume."""
     for name in baselines:
         preset = BASELINE_PRESETS[name]
         t = time.perf_counter()
         v, tr = conventional_mesh(part, preset, parallel=parallel)
-        out.append(
-            MeshInput(
-                name,
-                "baseline",
-                v,
-                tr,
-                time.perf_counter() - t,
-                f"OCCT BRepMesh, linear {preset.linear} mm, angular {preset.angular} rad: {preset.source}"
-                + ("" if parallel else " (timed on one thread)"),
-            )
+        yield MeshInput(
+            name,
+            "baseline",
+            v,
+            tr,
+            time.perf_counter() - t,
+            f"OCCT BRepMesh, linear {preset.linear} mm, angular {preset.angular} rad: {preset.source}"
+            + ("" if parallel else " (timed on one thread)"),
         )
-    return OcctSide(out, xy_box(part), part.volume_mm3)
+    return OcctSide(xy_box(part), part.volume_mm3)
 
 
 def _start_occt_side(tasks: TaskGroup, part: LoadedPart, baselines: Sequence[str], nice: int = 0) -> Task:
@@ -496,15 +500,18 @@ def _build_report(
             )
             measuring.setdefault(id(m), []).append((j0, task))
 
-    if baselines and not side.ready():
-        start(todo)  # while OCCT finishes the baselines
+    if side.ready():  # every baseline at hand: all plane ranges balanced together
+        made = list(side.items())
+        occt = _occt_result(side)
+        start(todo + made)
+        todo.extend(made)
+    else:  # the meshes at hand, then each baseline as soon as OCCT has made it
+        start(todo)
         report("conventional meshes", 0.5)
+        for base in side.items():
+            start([base])
+            todo.append(base)
         occt = _occt_result(side)
-        start(occt.baselines)
-    else:
-        occt = _occt_result(side)
-        start(todo + occt.baselines)
-    todo.extend(occt.baselines)
     report("measuring meshes", 0.7)
     results = [
         _mesh_report(

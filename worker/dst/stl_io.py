@@ -135,6 +135,17 @@ def merge_equal_vertices(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return v[order[first]], inv
 
 
+def binary_stl_corners(data: bytes) -> np.ndarray:
+    """The triangles' corners (3n, 3) float32 of a binary STL written by this program or by OCCT's
+    StlAPI_Writer: the layout is known (80-byte header, count, 50-byte records), so the records are
+    viewed in place. A user's file, binary or ASCII, is read by :func:`read_stl` (trimesh)."""
+    raw = np.frombuffer(data, dtype=np.uint8)
+    n = int(raw[80:84].view("<u4")[0]) if len(raw) >= 84 else -1
+    if len(raw) != binary_stl_size(n):
+        raise ValueError(f"not a binary STL of {n} triangles: {len(raw)} bytes")
+    return raw[84:].view(STL_RECORD)["v"].reshape(-1, 3)
+
+
 def read_stl(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (float64, as stored: float32 values) and triangles of an STL file (binary or ASCII),
     read with trimesh; vertices with equal coordinates are merged, as slicers merge them."""

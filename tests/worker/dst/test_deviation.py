@@ -9,6 +9,7 @@ import pytest
 
 from worker.dst.deviation import (
     _FIRST_RADIUS_MM,
+    _K_NEIGHBOURS,
     SegmentSet,
     compare,
     cut_mesh,
@@ -171,6 +172,30 @@ def test_segment_distances_are_exact_against_brute_force():
     brute = np.where(plane[None, :] == pts_plane[:, None], dist, np.inf).min(axis=1)
     np.testing.assert_allclose(d, brute, rtol=0, atol=1e-12)
     assert (brute < 0.2).sum() > 200 and (brute > 1.5).sum() > 200  # both searches were needed
+
+
+def test_fine_polylines_are_measured_exactly_too():
+    """Closed wavy loops of segments much shorter than the spacing (every dense point shared by two
+    segments: the search asks for twice as many neighbours) against brute force."""
+    rng = np.random.default_rng(11)
+    loops = []
+    for j in range(3):
+        t = np.linspace(0, 2 * np.pi, 900, endpoint=False)
+        r = 6 + 0.8 * np.sin(7 * t + j) + 0.05 * rng.normal(size=len(t))
+        loops.append([np.column_stack([r * np.cos(t), r * np.sin(t)])])
+    seg, plane = loops_to_segments(loops)
+    s = SegmentSet(seg, plane, spacing=0.2)
+    assert s.k > _K_NEIGHBOURS  # the shared-ends case
+    pts = rng.uniform(-8, 8, (3000, 2))
+    pts_plane = rng.integers(0, 3, 3000)
+    d = s.distance(pts, pts_plane)
+    ab = seg[:, 1] - seg[:, 0]
+    ap = pts[:, None, :] - seg[None, :, 0]
+    tt = np.clip(np.einsum("psi,si->ps", ap, ab) / np.einsum("si,si->s", ab, ab), 0, 1)
+    dist = np.linalg.norm(ap - tt[..., None] * ab, axis=2)
+    brute = np.where(plane[None, :] == pts_plane[:, None], dist, np.inf).min(axis=1)
+    np.testing.assert_allclose(d, brute, rtol=0, atol=1e-12)
+    assert (brute < 0.05).sum() > 20 and (brute > 1.0).sum() > 1000
 
 
 def test_a_nearer_segment_whose_dense_points_lie_beyond_the_first_search_is_found():

@@ -102,6 +102,80 @@ def test_children_that_sent_their_results_are_reaped_by_the_end_of_the_group():
             os.waitpid(pid, os.WNOHANG)
 
 
+def _stream(marker: str, big: int):
+    """Yield a value larger than a pipe holds and the time right after; then wait (up to 20 s) for
+    the parent to say it has the first value; return whether it did."""
+    yield np.arange(big, dtype=np.float64)
+    yield time.monotonic()
+    deadline = time.monotonic() + 20.0
+    while not os.path.exists(marker) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return os.path.exists(marker)
+
+
+def _stream_then(fail: str):
+    yield 1
+    yield 2
+    if fail == "raise":
+        raise TessellationError("the second face has no triangles")
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
+@needs_fork
+def test_a_generator_tasks_values_arrive_while_it_works_on_unread():
+    """The child yields 8 MB (a pipe holds 64 kB) and goes on at once, without waiting for this
+    process to read; this process gets the first value while the child is still running."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp, TaskGroup(forked=True) as tasks:
+        marker = os.path.join(tmp, "got-it")
+        t = tasks.submit(_stream, marker, 1_000_000)
+        time.sleep(0.5)  # not reading
+        reading = time.monotonic()
+        values = t.items()
+        first = next(values)
+        assert np.array_equal(first, np.arange(1_000_000, dtype=np.float64))
+        assert not t.done()  # the child is waiting for the marker: still running
+        open(marker, "w").close()
+        after_first = next(values)
+        assert after_first < reading  # the child did not wait for this process to read
+        assert list(values) == []
+        assert t.result() is True
+
+
+def _wrapped_stream(fail: str):
+    return _stream_then(fail)  # not a generator function: returns a generator
+
+
+@needs_fork
+def test_a_function_returning_a_generator_streams_through_the_pipe():
+    with TaskGroup(forked=True) as tasks:
+        t = tasks.submit(_wrapped_stream, "raise")
+        assert list(t.items()) == [1, 2]
+        with pytest.raises(TessellationError, match="second face"):
+            t.result()
+
+
+@pytest.mark.parametrize("forked", [True, False])
+def test_a_generator_task_that_fails_gives_its_values_then_its_error(forked):
+    if forked and not fork_available():
+        pytest.skip("fork is used on Linux only")
+    with TaskGroup(forked=forked) as tasks:
+        t = tasks.submit(_stream_then, "raise")
+        assert list(t.items()) == [1, 2]
+        with pytest.raises(TessellationError, match="second face"):
+            t.result()
+
+
+@needs_fork
+def test_a_generator_task_that_dies_gives_its_values_then_task_died():
+    with TaskGroup(forked=True) as tasks:
+        t = tasks.submit(_stream_then, "die")
+        assert list(t.items()) == [1, 2]
+        with pytest.raises(TaskDied, match="signal 9"):
+            t.result()
+
+
 def test_inline_tasks_run_in_this_process():
     with TaskGroup(forked=False) as tasks:
         assert not tasks.forked

@@ -163,6 +163,19 @@ def test_write_binary_and_ascii_stl_round_trip(hemisphere, tmp_path):
         assert set(hemisphere.planes.z32.tolist()) <= zs
 
 
+def test_binary_stl_corners_views_a_known_layout_and_refuses_a_truncated_file(hemisphere, tmp_path):
+    from worker.dst.stl_io import binary_stl_corners
+
+    path = tmp_path / "h.stl"
+    hemisphere.write_stl(path)
+    data = path.read_bytes()
+    corners = binary_stl_corners(data)
+    assert np.array_equal(corners, hemisphere.vertices32[hemisphere.triangles].reshape(-1, 3))
+    for bad in (data[:-1], data + b"x", data[:50]):
+        with pytest.raises(ValueError, match="not a binary STL"):
+            binary_stl_corners(bad)
+
+
 def test_3mf_holds_the_same_float32_mesh_as_the_stl(hemisphere, tmp_path):
     """Read back by trimesh's 3MF reader (lxml): the same indexed vertices, bit for bit as float32,
     the same triangles, watertight, every ring exactly on its float32 plane."""

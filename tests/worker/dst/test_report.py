@@ -359,6 +359,57 @@ def test_solid_volume_is_accurate_on_nurbs(make_step):
     assert solid_volume(part.solids[0]) == pytest.approx(2 / 3 * math.pi * 1000, rel=1e-6)
 
 
+@pytest.mark.parametrize("kind", ["hemisphere", "tube", "tangent_features"])
+def test_baseline_mesh_is_occts_triangulation(kind, make_step):
+    """The baseline read back from OCCT's STL writer is BRepMesh's triangulation, node by node:
+    the same float32 points (equal ones merged) and the same triangles, outward (reversed faces
+    turned), degenerate ones dropped; and enclosing the solid's volume."""
+    from OCP.BRep import BRep_Tool
+    from OCP.BRepMesh import BRepMesh_IncrementalMesh
+    from OCP.BRepTools import BRepTools
+    from OCP.TopAbs import TopAbs_FACE, TopAbs_REVERSED
+    from OCP.TopExp import TopExp_Explorer
+    from OCP.TopLoc import TopLoc_Location
+    from OCP.TopoDS import TopoDS
+
+    from worker.dst.report import conventional_mesh
+
+    part = read_step(make_step(kind))
+    preset = BASELINE_PRESETS["occt_high_quality"]
+    v, t = conventional_mesh(part, preset, parallel=False)
+
+    comp = part.compound
+    BRepTools.Clean_s(comp)
+    BRepMesh_IncrementalMesh(comp, preset.linear, False, preset.angular, False)
+    corners = []  # every triangle's three corners, float32, counter-clockwise from outside
+    exp = TopExp_Explorer(comp, TopAbs_FACE)
+    while exp.More():
+        face = TopoDS.Face(exp.Current())
+        loc = TopLoc_Location()
+        tri = BRep_Tool.Triangulation_s(face, loc)
+        trsf = loc.Transformation()
+        for i in range(1, tri.NbTriangles() + 1):
+            ids = tri.Triangle(i).Get()
+            if face.Orientation() == TopAbs_REVERSED:
+                ids = ids[::-1]
+            corners.append([tri.Node(k).Transformed(trsf).Coord() for k in ids])
+        exp.Next()
+    BRepTools.Clean_s(comp)
+    corners = np.asarray(corners, dtype=np.float32)
+    # drop the triangles two of whose corners are one float32 point
+    c = corners
+    keep = ~((c[:, 0] == c[:, 1]).all(1) | (c[:, 1] == c[:, 2]).all(1) | (c[:, 2] == c[:, 0]).all(1))
+    expected = {
+        tuple(map(tuple, np.roll(tri_, -int(np.lexsort(tri_.T[::-1])[0]), axis=0))) for tri_ in c[keep]
+    }
+    got_c = v.astype(np.float32)[t]
+    got = {tuple(map(tuple, np.roll(tri_, -int(np.lexsort(tri_.T[::-1])[0]), axis=0))) for tri_ in got_c}
+    assert len(t) == keep.sum() and got == expected
+    assert len(v) == len(np.unique(v, axis=0)) == len(np.unique(c[keep].reshape(-1, 3), axis=0))
+    volume = trimesh.Trimesh(v, t, process=False).volume
+    assert volume == pytest.approx(solid_volume(part.solids[0]), rel=0.02)
+
+
 @pytest.mark.corpus
 def test_corpus_part_report_matches_independent_recomputation(corpus, tmp_path):
     """On a real part: DST's vertices lie on the exact section, the baseline's do not, and the report's
