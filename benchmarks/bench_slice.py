@@ -188,6 +188,9 @@ def main() -> None:
     ap.add_argument(
         "--no-scaling", dest="scaling", action="store_false", help="skip the memory-against-planes table"
     )
+    ap.add_argument(
+        "--only", nargs="*", metavar="WORD", help="measure only the parts whose name holds one of these words"
+    )
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp())
     parts = [("hemisphere R20 (B-spline)", hemisphere_step(tmp))]
@@ -195,6 +198,8 @@ def main() -> None:
         if (CORPUS / rel).is_file():
             parts.append((rel, CORPUS / rel))
     parts += [(p, Path(p)) for p in args.parts or []]
+    if args.only:
+        parts = [(name, path) for name, path in parts if any(w in name for w in args.only)]
     cores = usable_cpus()
 
     head = (
