@@ -130,8 +130,9 @@ class OcctSide:
 def _occt_side(part: LoadedPart, baselines: Sequence[str], parallel: bool) -> Iterator[MeshInput]:
     """The conventional baseline meshes, each yielded as soon as it is made (in a helper, the report
     measures the first ones while OCCT makes the next); returns the part's exact x/y extent and its
-    exact volume."""
-    for name in baselines:
+    exact volume. The coarsest first: they are quick, and the report measures them while OCCT
+    makes the finer ones."""
+    for name in sorted(baselines, key=lambda n: -BASELINE_PRESETS[n].linear):
         preset = BASELINE_PRESETS[name]
         t = time.perf_counter()
         v, tr = conventional_mesh(part, preset, parallel=parallel)
@@ -441,7 +442,9 @@ def _build_report(
     """The report, ``side`` being ``_occt_side``'s task and ``reference`` (if started)
     ``_exact_reference``'s. OCCT's own work (the baselines, the exact box and volume) holds the GIL:
     it runs in a child process beside the exact reference, on one thread there (OCCT's thread pool
-    stays behind in this process when it forks)."""
+    stays behind in this process when it forks). The baselines come one by one, each measured as
+    soon as it is there while OCCT makes the next (the coarse presets first: their measuring
+    overlaps the finer ones' meshing)."""
     warnings: list[str] = []
     report("exact sections", 0.0)
     # plane heights: the DST mesh's own, else planned from the exact height
@@ -512,6 +515,8 @@ def _build_report(
             start([base])
             todo.append(base)
         occt = _occt_result(side)
+    rank = {name: i for i, name in enumerate(baselines)}  # the baselines in the order asked for
+    todo.sort(key=lambda m: rank[m.name] if m.kind == "baseline" else -1)
     report("measuring meshes", 0.7)
     results = [
         _mesh_report(

@@ -491,17 +491,18 @@ def _numbers(report: Report) -> list:
 def test_forked_helpers_and_one_process_give_the_same_report(hemisphere, monkeypatch, min_chunk):
     """The baselines meshed in a forked child on one thread, the meshes measured in forked
     children (with ``min_chunk`` 1: each in many plane ranges, merged back), against everything in
-    this process: the same numbers."""
+    this process: the same numbers. The baselines are made coarsest first (each measured as soon as
+    it is there) and reported in the order asked for."""
     from worker.dst import report as report_mod
 
     if min_chunk is not None:
         monkeypatch.setattr(report_mod, "MIN_MEASURE_CHUNK", min_chunk)
     path, mesh, _, _ = hemisphere
     params = SliceParams(layer_height=0.2)
-    kw = dict(file_name=str(path), dst=mesh, baselines=["occt_fast", "occt_high_quality"])
+    kw = dict(file_name=str(path), dst=mesh, baselines=["occt_high_quality", "occt_fast"])
     forked = build_report(mesh.part, params, **kw)
     inline = build_report(mesh.part, params, processes=1, **kw)
-    assert [m.name for m in forked.meshes] == ["dst", "occt_fast", "occt_high_quality"]
+    assert [m.name for m in forked.meshes] == ["dst", "occt_high_quality", "occt_fast"]
     assert _numbers(forked) == _numbers(inline)
     assert forked.input == inline.input and forked.warnings == inline.warnings
 
