@@ -147,21 +147,15 @@ def _wrapped_stream(fail: str):
     return _stream_then(fail)  # not a generator function: returns a generator
 
 
-@needs_fork
-def test_a_function_returning_a_generator_streams_through_the_pipe():
-    with TaskGroup(forked=True) as tasks:
-        t = tasks.submit(_wrapped_stream, "raise")
-        assert list(t.items()) == [1, 2]
-        with pytest.raises(TessellationError, match="second face"):
-            t.result()
-
-
-@pytest.mark.parametrize("forked", [True, False])
-def test_a_generator_task_that_fails_gives_its_values_then_its_error(forked):
+@pytest.mark.parametrize(
+    ("forked", "fn"), [(True, _stream_then), (False, _stream_then), (True, _wrapped_stream)]
+)
+def test_a_generator_task_that_fails_gives_its_values_then_its_error(forked, fn):
+    """Forked or inline; a function that only returns a generator streams through the pipe."""
     if forked and not fork_available():
         pytest.skip("fork is used on Linux only")
     with TaskGroup(forked=forked) as tasks:
-        t = tasks.submit(_stream_then, "raise")
+        t = tasks.submit(fn, "raise")
         assert list(t.items()) == [1, 2]
         with pytest.raises(TessellationError, match="second face"):
             t.result()
