@@ -603,7 +603,6 @@ async def get_mesh(
 
 def _converted_copy(request: Request, job: Job, format: str) -> Path:
     """The ASCII STL or the 3MF, made once from the binary STL and kept beside it."""
-
     from worker.dst.stl_io import binary_stl_corners, merge_equal_vertices, write_3mf, write_stl
 
     art = _artifacts(request)

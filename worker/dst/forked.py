@@ -171,10 +171,10 @@ class Task:
                 self._items.append(value)
             else:  # the last message: the child is exiting, reaped later, not waited for here
                 self._outcome = (kind == _RETURN, value)
-                self._close()
+                self._close()  # (drops the buffer too)
                 _exiting.add(self.pid)
                 reap_exited()
-                break
+                return True
         del self._buf[:pos]
         return got
 
