@@ -42,6 +42,7 @@ class MeshCut:
     open_chains: np.ndarray
     vertices: np.ndarray  # (m, 2) distinct cut vertices
     vertex_plane: np.ndarray  # (m,)
+    seg_node: np.ndarray  # (n, 2) int64: the vertices each segment joins
 
 
 def cut_mesh(vertices: np.ndarray, triangles: np.ndarray, heights: np.ndarray) -> MeshCut:
@@ -107,6 +108,7 @@ def cut_mesh(vertices: np.ndarray, triangles: np.ndarray, heights: np.ndarray) -
         open_chains=open_chains.astype(np.int64),
         vertices=node_xy,
         vertex_plane=node_plane,
+        seg_node=inv.astype(np.int64),
     )
 
 
@@ -152,12 +154,14 @@ def offset_cut(cut: MeshCut, first: int, n_planes: int) -> MeshCut:
         open_chains=chains,
         vertices=cut.vertices,
         vertex_plane=cut.vertex_plane + first,
+        seg_node=cut.seg_node,
     )
 
 
 def select_planes(cut: MeshCut, mask: np.ndarray) -> MeshCut:
     """The part of ``cut`` at the planes where ``mask`` is true (the others empty)."""
     keep_seg, keep_vert = mask[cut.seg_plane], mask[cut.vertex_plane]
+    new_id = np.cumsum(keep_vert) - 1  # a kept segment's ends lie on its plane: kept too
     return MeshCut(
         seg=cut.seg[keep_seg],
         seg_plane=cut.seg_plane[keep_seg],
@@ -165,13 +169,20 @@ def select_planes(cut: MeshCut, mask: np.ndarray) -> MeshCut:
         open_chains=np.where(mask, cut.open_chains, 0),
         vertices=cut.vertices[keep_vert],
         vertex_plane=cut.vertex_plane[keep_vert],
+        seg_node=new_id[cut.seg_node[keep_seg]],
     )
 
 
 def _empty_cut(n_planes: int) -> MeshCut:
     z = np.zeros(n_planes, dtype=np.int64)
     return MeshCut(
-        np.zeros((0, 2, 2)), np.zeros(0, dtype=np.int64), z, z.copy(), np.zeros((0, 2)), np.zeros(0, np.int64)
+        np.zeros((0, 2, 2)),
+        np.zeros(0, dtype=np.int64),
+        z,
+        z.copy(),
+        np.zeros((0, 2)),
+        np.zeros(0, np.int64),
+        np.zeros((0, 2), np.int64),
     )
 
 
@@ -327,9 +338,19 @@ class SegmentSet:
         curv: np.ndarray | None = None,
         nxt: np.ndarray | None = None,
         chord: float = 0.0,
+        neighbours: np.ndarray | None = None,
     ):
         self.seg, self.seg_plane, self.spacing = seg, seg_plane, spacing
         self.nxt, self.chord = nxt, chord  # closed loops: next span; the curves' sampling tolerance
+        # (n, 2): the segments joined to each one's two ends (itself where none): the nearest segment
+        # of a point is most often the nearest of a point close by or one of its neighbours
+        if neighbours is None and nxt is not None:
+            prev = np.empty_like(nxt)
+            prev[nxt] = np.arange(len(nxt))
+            neighbours = np.column_stack([prev, nxt])
+        self.neighbours = (
+            np.repeat(np.arange(len(seg))[:, None], 2, axis=1) if neighbours is None else neighbours
+        )
         self.curv = np.zeros((len(seg), 2)) if curv is None else np.asarray(curv, dtype=np.float64)
         self.curved = bool(np.any(self.curv != 0.0))
         ab = seg[:, 1] - seg[:, 0]
@@ -361,27 +382,36 @@ class SegmentSet:
     def distance(self, pts: np.ndarray, plane: np.ndarray, *, workers: int = -1) -> np.ndarray:
         """Distance of each point to the nearest segment of its own plane (inf if the plane has none).
         ``workers``: threads of the k-d tree search (-1: all CPUs)."""
+        return self.nearest(pts, plane, workers=workers)[0]
+
+    def nearest(
+        self, pts: np.ndarray, plane: np.ndarray, *, workers: int = -1
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Distance of each point to the nearest segment of its own plane and that segment's index
+        (inf and -1 if the plane has none)."""
         out = np.full(len(pts), np.inf)
+        idx = np.full(len(pts), -1, dtype=np.int64)
         if self.tree is None or not len(pts):
-            return out
+            return out, idx
         plane = np.asarray(plane)
         has = np.zeros(len(plane), dtype=bool)
         inside = (plane >= 0) & (plane < len(self._present))
         has[inside] = self._present[plane[inside]]
         if not has.any():
-            return out
+            return out, idx
         p2, q = pts[has], self._lift(pts[has], plane[has])
         # in chunks whose (chunk, k, columns) temporaries stay in the CPU's cache: ~10% faster
-        out[has] = np.concatenate(
-            [
-                self._nearest(p2[i : i + _QUERY_CHUNK], q[i : i + _QUERY_CHUNK], workers)
-                for i in range(0, len(q), _QUERY_CHUNK)
-            ]
-        )
-        return out
+        found = [
+            self._nearest(p2[i : i + _QUERY_CHUNK], q[i : i + _QUERY_CHUNK], workers)
+            for i in range(0, len(q), _QUERY_CHUNK)
+        ]
+        out[has] = np.concatenate([d for d, _ in found])
+        idx[has] = np.concatenate([i for _, i in found])
+        return out, idx
 
-    def _nearest(self, p2: np.ndarray, q: np.ndarray, workers: int) -> np.ndarray:
+    def _nearest(self, p2: np.ndarray, q: np.ndarray, workers: int) -> tuple[np.ndarray, np.ndarray]:
         d = np.full(len(q), np.inf)
+        idx = np.full(len(q), -1, dtype=np.int64)
         todo = np.arange(len(q))
         k = self.k
         reach = 0.5 * self.spacing + self.max_offset
@@ -394,9 +424,12 @@ class SegmentSet:
             dk, ik = self.tree.query(q[todo], k=k, workers=workers, distance_upper_bound=bound)
             dk, ik = dk.reshape(len(todo), k), ik.reshape(len(todo), k)
             found = ik < n  # fewer than k points within the bound: the others come back as index n
-            rows = self._rows[self.owner[np.where(found, ik, 0)]]  # (n, k, columns)
-            dist = _point_curve(p2[todo][:, None, :], rows)
-            d[todo] = np.where(found, dist, np.inf).min(axis=1)
+            owner = self.owner[np.where(found, ik, 0)]
+            dist = np.where(found, _point_curve(p2[todo][:, None, :], self._rows[owner]), np.inf)
+            best = dist.argmin(axis=1)
+            rows = np.arange(len(todo))
+            d[todo] = dist[rows, best]
+            idx[todo] = np.where(found[rows, best], owner[rows, best], -1)
             if k == n and bound == np.inf:
                 break
             # The nearest segment has a dense point within d + spacing/2 (+ a curve's offset) of
@@ -407,7 +440,32 @@ class SegmentSet:
             todo = todo[(last <= ball) | (np.isinf(last) & (ball >= bound))]
             k *= 4
             bound = np.inf
-        return d
+        return d, idx
+
+    def distance_to(self, pts: np.ndarray, candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distance of each point to the nearest of its candidate segments ((n, c) indices, -1 for
+        none) and that segment: an upper bound of its distance to the set (inf without candidates)."""
+        d = np.full(len(pts), np.inf)
+        idx = np.full(len(pts), -1, dtype=np.int64)
+        if not len(self.seg):
+            return d, idx
+        for i in range(0, len(pts), _QUERY_CHUNK):
+            c = candidates[i : i + _QUERY_CHUNK]
+            ok = c >= 0
+            dist = np.where(ok, _point_curve(pts[i : i + _QUERY_CHUNK, None, :], self._rows[np.where(ok, c, 0)]), np.inf)
+            best = dist.argmin(axis=1)
+            rows = np.arange(len(c))
+            d[i : i + len(c)] = dist[rows, best]
+            idx[i : i + len(c)] = np.where(ok[rows, best], c[rows, best], -1)
+        return d, idx
+
+    def around(self, seg_idx: np.ndarray) -> np.ndarray:
+        """Candidate segments for points near points whose nearest segments are ``seg_idx`` ((n, m),
+        -1 for none): those segments and their neighbours, (n, 3 m)."""
+        ok = seg_idx >= 0
+        nb = self.neighbours[np.where(ok, seg_idx, 0)]  # (n, m, 2)
+        nb = np.where(ok[..., None], nb, -1)
+        return np.concatenate([seg_idx, nb.reshape(len(seg_idx), -1)], axis=1)
 
 
 def _point_curve(p: np.ndarray, rows: np.ndarray) -> np.ndarray:
@@ -456,6 +514,59 @@ def max_per_plane(values: np.ndarray, plane: np.ndarray, n_planes: int) -> np.nd
     return out
 
 
+def segment_neighbours(seg_node: np.ndarray, n_nodes: int) -> np.ndarray:
+    """(n, 2): for each segment, the other segment at each of its ends where exactly two meet there
+    (along a chain), else the segment itself."""
+    n = len(seg_node)
+    flat = seg_node.ravel()
+    own = np.repeat(np.arange(n), 2)
+    order = np.argsort(flat, kind="stable")
+    f = flat[order]
+    start = np.flatnonzero(np.concatenate([[True], f[1:] != f[:-1]]))
+    pair = start[np.diff(np.append(start, len(f))) == 2]
+    other = own.copy()
+    other[order[pair]] = own[order[pair + 1]]
+    other[order[pair + 1]] = own[order[pair]]
+    return other.reshape(n, 2)
+
+
+def _bounded_distances(
+    target: SegmentSet,
+    pts: np.ndarray,
+    plane: np.ndarray,
+    candidates: np.ndarray,
+    value,
+    lower: np.ndarray,
+    n_planes: int,
+    workers: int,
+) -> np.ndarray:
+    """Distances of ``pts`` to ``target``, as far as the per-plane maximum of ``value(distances)``
+    needs them. ``value`` maps the distances to each point's contribution, non-decreasing in its own
+    distance; ``lower`` (per plane) is at most that maximum. The result is exact wherever the
+    contribution could exceed the maximum, elsewhere the distance to the nearest candidate segment
+    (an upper bound whose contribution does not): the maximum is exact, with a k-d tree search only
+    for those points. First the point of each plane with the largest bound is measured: where the
+    candidates hold the nearest segment (mostly), its value is the maximum, and every other point is
+    settled by its bound."""
+    d, _ = target.distance_to(pts, candidates)
+    if not len(d):
+        return d
+    top = _first_per_plane(value(d), plane)
+    d[top] = target.distance(pts[top], plane[top], workers=workers)
+    lower = np.maximum(lower, max_per_plane(value(d)[top], plane[top], n_planes))
+    need = value(d) > lower[plane]
+    need[top] = False
+    d[need] = target.distance(pts[need], plane[need], workers=workers)
+    return d
+
+
+def _first_per_plane(values: np.ndarray, plane: np.ndarray) -> np.ndarray:
+    """Index of the largest value of each plane present."""
+    order = np.lexsort((-values, plane))
+    p = plane[order]
+    return order[np.concatenate([[True], p[1:] != p[:-1]])]
+
+
 def compare(
     cut: MeshCut, ref: SegmentSet, ref_perimeter: np.ndarray, n_planes: int, *, workers: int = -1
 ) -> LayerMetrics:
@@ -474,27 +585,51 @@ def compare(
     """
     cut_has = np.bincount(cut.seg_plane, minlength=n_planes) > 0
     ref_has = np.bincount(ref.seg_plane, minlength=n_planes) > 0
-    # the cut's vertices and segment midpoints against the reference, in one search
-    n_vert = len(cut.vertices)
-    d_cut = ref.distance(
-        np.concatenate([cut.vertices, midpoints(cut.seg)]),
-        np.concatenate([cut.vertex_plane, cut.seg_plane]),
-        workers=workers,
+    # the cut's vertices against the reference; its segment midpoints exactly where they could be
+    # their plane's farthest, from the vertices' nearest spans
+    d_vert, near_vert = ref.nearest(cut.vertices, cut.vertex_plane, workers=workers)
+    vertex_dev = max_per_plane(d_vert, cut.vertex_plane, n_planes)
+    d_mid = _bounded_distances(
+        ref,
+        midpoints(cut.seg),
+        cut.seg_plane,
+        ref.around(near_vert[cut.seg_node]),
+        lambda d: d,
+        vertex_dev,
+        n_planes,
+        workers,
     )
-    vertex_dev = max_per_plane(d_cut[:n_vert], cut.vertex_plane, n_planes)
+    d_cut_to_ref = np.maximum(vertex_dev, max_per_plane(d_mid, cut.seg_plane, n_planes))
 
-    cut_set = SegmentSet(cut.seg, cut.seg_plane, spacing=ref.spacing)
+    cut_set = SegmentSet(
+        cut.seg,
+        cut.seg_plane,
+        spacing=ref.spacing,
+        neighbours=segment_neighbours(cut.seg_node, len(cut.vertices)),
+    )
     # every vertex of the closed reference loops and the curve's point over every span's midpoint;
-    # with loops known, each span's peak is interpolated from its three values
+    # with loops known, each span's peak is interpolated from its three values (the midpoints
+    # exactly where that peak could be the plane's largest)
     n_ref = len(ref.seg)
-    ref_pts = np.concatenate([ref.seg[:, 0], arc_midpoints(ref.seg, ref.curv)])
-    ref_pl = np.concatenate([ref.seg_plane, ref.seg_plane])
-    d_ref = cut_set.distance(ref_pts, ref_pl, workers=workers)
     if ref.nxt is not None and n_ref:
-        d_ref = span_max(d_ref[:n_ref], d_ref[n_ref:], d_ref[:n_ref][ref.nxt], ref.chord)
-        ref_pl = ref.seg_plane
+        d0, near0 = cut_set.nearest(ref.seg[:, 0], ref.seg_plane, workers=workers)
+        d1 = d0[ref.nxt]
+        d_mid = _bounded_distances(
+            cut_set,
+            arc_midpoints(ref.seg, ref.curv),
+            ref.seg_plane,
+            cut_set.around(np.column_stack([near0, near0[ref.nxt]])),
+            lambda d: span_max(d0, d, d1, ref.chord),
+            max_per_plane(d0, ref.seg_plane, n_planes),
+            n_planes,
+            workers,
+        )
+        d_ref, ref_pl = span_max(d0, d_mid, d1, ref.chord), ref.seg_plane
+    else:
+        ref_pts = np.concatenate([ref.seg[:, 0], arc_midpoints(ref.seg, ref.curv)])
+        ref_pl = np.concatenate([ref.seg_plane, ref.seg_plane])
+        d_ref = cut_set.distance(ref_pts, ref_pl, workers=workers)
     d_ref_to_cut = max_per_plane(d_ref, ref_pl, n_planes)
-    d_cut_to_ref = np.maximum(vertex_dev, max_per_plane(d_cut[n_vert:], cut.seg_plane, n_planes))
     chord_dev = np.maximum(d_ref_to_cut, d_cut_to_ref)
 
     cut_perimeter = segment_lengths_per_plane(cut.seg, cut.seg_plane, n_planes)

@@ -11,10 +11,16 @@ from worker.dst.deviation import (
     _FIRST_RADIUS_MM,
     _K_NEIGHBOURS,
     SegmentSet,
+    arc_midpoints,
     compare,
     cut_mesh,
+    loop_successors,
     loops_to_segments,
+    max_per_plane,
+    midpoints,
+    segment_neighbours,
     span_curvatures,
+    span_max,
 )
 
 
@@ -231,3 +237,106 @@ def test_corner_is_not_rounded_by_the_arc_correction():
     sq = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
     dense = np.vstack([np.linspace(sq[i], sq[(i + 1) % 4], 50, endpoint=False) for i in range(4)])
     assert np.abs(span_curvatures([[dense]], chord=1e-3)).max() == 0.0
+
+
+def test_nearest_names_a_segment_at_that_distance():
+    rng = np.random.default_rng(3)
+    a = rng.uniform(-5, 5, (300, 2))
+    seg = np.stack([a, a + rng.normal(0, 1.0, (300, 2))], axis=1)
+    plane = rng.integers(0, 3, 300)
+    pts = rng.uniform(-8, 8, (1500, 2))
+    pts_plane = rng.integers(0, 4, 1500)  # plane 3 has no segments
+    s = SegmentSet(seg, plane, spacing=0.5)
+    d, idx = s.nearest(pts, pts_plane)
+    none = pts_plane == 3
+    assert np.isinf(d[none]).all() and (idx[none] == -1).all()
+    assert (plane[idx[~none]] == pts_plane[~none]).all()
+    # the named segment is at the distance found (its own candidate distance, exactly)
+    own, own_idx = s.distance_to(pts[~none], idx[~none, None])
+    np.testing.assert_array_equal(own, d[~none])
+    np.testing.assert_array_equal(own_idx, idx[~none])
+
+
+def test_segment_neighbours_along_chains():
+    # a closed triangle 0-1-2 (segments in any direction) and an open chain 3-4-5
+    seg_node = np.array([[0, 1], [2, 1], [2, 0], [3, 4], [4, 5]])
+    nb = segment_neighbours(seg_node, 6)
+    assert nb.tolist() == [[2, 1], [2, 0], [1, 0], [3, 4], [3, 4]]
+
+
+def stacked(rings: list[np.ndarray], z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A closed mesh through rings of equal vertex count (CCW) at heights ``z``, capped at both ends."""
+    n = len(rings[0])
+    v = np.vstack([np.column_stack([r, np.full(n, zk)]) for r, zk in zip(rings, z, strict=True)])
+    tris = []
+    for k in range(len(z) - 1):
+        for i in range(n):
+            a, b = k * n + i, k * n + (i + 1) % n
+            tris += [(a, b, b + n), (a, b + n, a + n)]
+    top = (len(z) - 1) * n
+    for i in range(1, n - 1):
+        tris += [(0, i + 1, i), (top, top + i, top + i + 1)]
+    return v, np.array(tris, dtype=np.int64)
+
+
+def every_point_searched(cut, ref: SegmentSet, n_planes: int) -> tuple[np.ndarray, np.ndarray]:
+    """vertex_dev and chord_dev from a k-d tree search for every point (no bounds, no pruning)."""
+    d_vert = ref.distance(cut.vertices, cut.vertex_plane)
+    vertex_dev = max_per_plane(d_vert, cut.vertex_plane, n_planes)
+    d_mid = ref.distance(midpoints(cut.seg), cut.seg_plane)
+    cut_to_ref = np.maximum(vertex_dev, max_per_plane(d_mid, cut.seg_plane, n_planes))
+    cut_set = SegmentSet(cut.seg, cut.seg_plane, spacing=ref.spacing)
+    d0 = cut_set.distance(ref.seg[:, 0], ref.seg_plane)
+    dm = cut_set.distance(arc_midpoints(ref.seg, ref.curv), ref.seg_plane)
+    spans = span_max(d0, dm, d0[ref.nxt], ref.chord)
+    return vertex_dev, np.maximum(cut_to_ref, max_per_plane(spans, ref.seg_plane, n_planes))
+
+
+@pytest.mark.parametrize("n_ring", [24, 150, 900])  # coarse to finer than the reference's spans
+def test_measuring_only_the_points_that_can_matter_gives_the_same_maxima(n_ring, monkeypatch):
+    """compare searches the k-d trees for the vertices, and for a midpoint only where its bound (the
+    distance to its neighbours' nearest segments) could be its plane's maximum. On jittered meshes
+    against wavy reference loops, plus a small reference loop beside the middle of one cut segment
+    (nearest to that midpoint, far from its ends: a bound that misleads), every metric equals the
+    one from a search for every point, while far fewer points are searched."""
+    rng = np.random.default_rng(n_ring)
+    heights = np.array([0.5, 1.5, 2.5, 3.5])
+    z = np.arange(5.0)
+    rings = []
+    for zk in z:
+        t = np.linspace(0, 2 * np.pi, n_ring, endpoint=False) + rng.uniform(0, 0.01)
+        r = 8 + 0.4 * np.sin(5 * t + zk) + rng.normal(0, 0.02, n_ring)
+        rings.append(np.column_stack([r * np.cos(t), r * np.sin(t)]))
+    v, tri = stacked(rings, z)
+    cut = cut_mesh(v, tri, heights)
+    loops = []
+    for j, h in enumerate(heights):
+        t = np.linspace(0, 2 * np.pi, 2000, endpoint=False)
+        r = 8 + 0.4 * np.sin(5 * t + h)
+        plane_loops = [np.column_stack([r * np.cos(t), r * np.sin(t)])]
+        if j == 1:  # a small loop 0.05 mm inside the middle of the plane's first cut segment
+            k = np.flatnonzero(cut.seg_plane == j)[0]
+            a, b = cut.seg[k]
+            mid = 0.5 * (a + b)
+            inward = -mid / np.linalg.norm(mid)
+            plane_loops.append(circle(0.02, 40, *(mid + 0.07 * inward)))
+        loops.append(plane_loops)
+    seg, plane = loops_to_segments(loops)
+    ref = SegmentSet(
+        seg, plane, curv=span_curvatures(loops, chord=1e-3), nxt=loop_successors(loops), chord=1e-3
+    )
+    searched = []
+    nearest = SegmentSet.nearest
+
+    def counting(self, pts, pl, **kw):
+        searched.append(len(pts))
+        return nearest(self, pts, pl, **kw)
+
+    monkeypatch.setattr(SegmentSet, "nearest", counting)
+    m = compare(cut, ref, np.ones(len(heights)), len(heights))
+    pruned = sum(searched)
+    searched.clear()
+    vertex_dev, chord_dev = every_point_searched(cut, ref, len(heights))
+    np.testing.assert_array_equal(m.vertex_dev, vertex_dev)
+    np.testing.assert_array_equal(m.chord_dev, chord_dev)
+    assert pruned < 0.7 * sum(searched)
