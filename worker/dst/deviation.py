@@ -452,7 +452,9 @@ class SegmentSet:
         for i in range(0, len(pts), _QUERY_CHUNK):
             c = candidates[i : i + _QUERY_CHUNK]
             ok = c >= 0
-            dist = np.where(ok, _point_curve(pts[i : i + _QUERY_CHUNK, None, :], self._rows[np.where(ok, c, 0)]), np.inf)
+            dist = np.where(
+                ok, _point_curve(pts[i : i + _QUERY_CHUNK, None, :], self._rows[np.where(ok, c, 0)]), np.inf
+            )
             best = dist.argmin(axis=1)
             rows = np.arange(len(c))
             d[i : i + len(c)] = dist[rows, best]
