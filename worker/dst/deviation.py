@@ -563,10 +563,12 @@ def _bounded_distances(
 
 
 def _first_per_plane(values: np.ndarray, plane: np.ndarray) -> np.ndarray:
-    """Index of the largest value of each plane present."""
-    order = np.lexsort((-values, plane))
-    p = plane[order]
-    return order[np.concatenate([[True], p[1:] != p[:-1]])]
+    """Index of a largest value of each plane present."""
+    top = max_per_plane(values, plane, int(plane.max()) + 1)
+    at = np.flatnonzero(values == top[plane])
+    first = np.full(len(top), -1, dtype=np.int64)
+    first[plane[at][::-1]] = at[::-1]  # of equal ones, the first
+    return first[first >= 0]
 
 
 def compare(
