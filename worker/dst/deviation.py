@@ -616,19 +616,24 @@ def compare(
     # exactly where that peak could be the plane's largest)
     n_ref = len(ref.seg)
     if ref.nxt is not None and n_ref:
-        d0, near0 = cut_set.nearest(ref.seg[:, 0], ref.seg_plane, workers=workers)
-        d1 = d0[ref.nxt]
+        # only at planes the cut reaches (elsewhere the distances are undefined: NaN below)
+        sel = np.flatnonzero(cut_has[ref.seg_plane])
+        plane = ref.seg_plane[sel]
+        d0 = np.full(n_ref, np.inf)
+        near0 = np.full(n_ref, -1, dtype=np.int64)
+        d0[sel], near0[sel] = cut_set.nearest(ref.seg[sel, 0], plane, workers=workers)
+        d_start, d_end = d0[sel], d0[ref.nxt[sel]]
         d_mid = _bounded_distances(
             cut_set,
-            arc_midpoints(ref.seg, ref.curv),
-            ref.seg_plane,
-            cut_set.around(np.column_stack([near0, near0[ref.nxt]])),
-            lambda d: span_max(d0, d, d1, ref.chord),
-            max_per_plane(d0, ref.seg_plane, n_planes),
+            arc_midpoints(ref.seg[sel], ref.curv[sel]),
+            plane,
+            cut_set.around(np.column_stack([near0[sel], near0[ref.nxt[sel]]])),
+            lambda d: span_max(d_start, d, d_end, ref.chord),
+            max_per_plane(d_start, plane, n_planes),
             n_planes,
             workers,
         )
-        d_ref, ref_pl = span_max(d0, d_mid, d1, ref.chord), ref.seg_plane
+        d_ref, ref_pl = span_max(d_start, d_mid, d_end, ref.chord), plane
     else:
         ref_pts = np.concatenate([ref.seg[:, 0], arc_midpoints(ref.seg, ref.curv)])
         ref_pl = np.concatenate([ref.seg_plane, ref.seg_plane])

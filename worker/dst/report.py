@@ -74,9 +74,12 @@ REFERENCE_CHORD_MM = 1e-3
 REFERENCE_SEGMENT_MM = 2.0
 # Cura drops section loops shorter than this (minimum_polygon_circumference default)
 CURA_MIN_CIRCUMFERENCE_MM = 1.0
-# Plane ranges measured by one helper hold at least this much work (``_plane_costs`` units: searched
-# points; ~0.2 s on the development machine): smaller ones cost more to fork than they save.
-MIN_MEASURE_CHUNK = 100_000
+# A measuring helper gets at least this much work (``_plane_costs`` units: searched points; ~0.1 s
+# on the development machine): less costs more to fork than it saves.
+MIN_MEASURE_CHUNK = 60_000
+# Measuring the DST mesh costs this fraction of what ``_plane_costs`` says (its cut's vertices lie
+# on the exact sections: their searches end at once); measured on the hemisphere and the soapbox
+DST_COST = 0.65
 # Niceness of a job's helpers that start beside its DST build: they take the cores it leaves idle
 BACKGROUND_NICE = 10
 VOLUME_WARN_REL = 0.01  # a mesh enclosing 1% more or less than the solid is worth a warning
@@ -197,7 +200,7 @@ def _occt_result(side: Task) -> OcctSide:
     )
 
 
-def _measured(task: Task) -> _Measured:
+def _measured(task: Task) -> list[_Measured]:
     # numpy work only: a helper that dies without a word was killed, in practice for memory
     return _helper_result(
         task,
@@ -486,23 +489,38 @@ def _build_report(
     # helpers finish together, largest first; one k-d tree thread each when they run side by side.
     workers = 1 if tasks.forked and tasks.limit > 1 else -1
     ref_per_plane = np.bincount(ref_set.seg_plane, minlength=n_planes)
-    measuring: dict[int, list[tuple[int, Task]]] = {}  # per mesh: (first plane, task)
+    measuring: dict[int, list[tuple[int, Task, int]]] = {}  # per mesh: (first plane, task, piece)
 
     def start(ms: list[MeshInput]) -> None:
+        # The meshes' plane ranges packed into at most one task per helper, of about equal work
+        # (each task at least MIN_MEASURE_CHUNK: a fork costs ~25 ms of CPU), the largest first.
         placed = {id(m): _on_bed(m) for m in ms}  # once per mesh; the helpers share it
-        costs = {id(m): _plane_costs(*placed[id(m)], heights, ref_per_plane) for m in ms}
-        total = sum(c.sum() for c in costs.values())
-        chunk = max(total / (3 * tasks.limit), MIN_MEASURE_CHUNK) if tasks.forked else np.inf
-        jobs = []
-        for m in ms:
-            for j0, j1 in _plane_ranges(costs[id(m)], chunk):
-                jobs.append((float(costs[id(m)][j0:j1].sum()), m, j0, j1))
-        for _, m, j0, j1 in sorted(jobs, key=lambda job: job[0], reverse=True):
-            v, tr = placed[id(m)]
+        costs = {
+            id(m): _plane_costs(*placed[id(m)], heights, ref_per_plane)
+            * (DST_COST if m.kind == "dst" else 1.0)
+            for m in ms
+        }
+        total = sum(float(c.sum()) for c in costs.values())
+        n_tasks = max(1, min(tasks.limit, int(total // MIN_MEASURE_CHUNK))) if tasks.forked else 1
+        chunk = total / (6 * n_tasks) if n_tasks > 1 else np.inf  # pieces small enough to balance
+        pieces = [
+            (float(costs[id(m)][j0:j1].sum()), m, j0, j1)
+            for m in ms
+            for j0, j1 in _plane_ranges(costs[id(m)], chunk)
+        ]
+        for share in _pack(pieces, n_tasks):
             task = tasks.submit(
-                _measure_planes, v, tr, heights, j0, j1, ref_set, ref_perimeter, below, n_planes, workers
+                _measure_pieces,
+                [(*placed[id(m)], j0, j1) for _, m, j0, j1 in share],
+                heights,
+                ref_set,
+                ref_perimeter,
+                below,
+                n_planes,
+                workers,
             )
-            measuring.setdefault(id(m), []).append((j0, task))
+            for k, (_, m, j0, _) in enumerate(share):
+                measuring.setdefault(id(m), []).append((j0, task, k))
 
     if side.ready():  # every baseline at hand: all plane ranges balanced together
         made = list(side.items())
@@ -522,7 +540,7 @@ def _build_report(
     results = [
         _mesh_report(
             m,
-            [_measured(t) for _, t in sorted(measuring[id(m)], key=lambda r: r[0])],
+            [_measured(t)[k] for _, t, k in sorted(measuring[id(m)], key=lambda r: r[0])],
             planes_z,
             loops_exact,
             below,
@@ -707,6 +725,34 @@ def _measure_planes(
         open_edges, nonmanifold = edge_defects(tr, len(v)) if len(tr) else (0, 0)
         mesh_wide = (open_edges, nonmanifold, signed_volume(v, tr) if len(tr) else 0.0)
     return _Measured(part, mesh_wide, side[j0:j1])
+
+
+def _measure_pieces(
+    pieces: list[tuple[np.ndarray, np.ndarray, int, int]],
+    heights: np.ndarray,
+    ref_set: SegmentSet,
+    ref_perimeter: np.ndarray,
+    below: _BelowReference | None,
+    n_planes: int,
+    workers: int,
+) -> list[_Measured]:
+    """``_measure_planes`` for each (vertices, triangles, j0, j1) piece, in one helper."""
+    return [
+        _measure_planes(v, tr, heights, j0, j1, ref_set, ref_perimeter, below, n_planes, workers)
+        for v, tr, j0, j1 in pieces
+    ]
+
+
+def _pack(pieces: list[tuple], n: int) -> list[list[tuple]]:
+    """Pieces (work first) shared out among ``n`` lists of about equal work: each, largest first, to
+    the list with the least so far. Lists in order of work, largest first; none empty."""
+    shares: list[list[tuple]] = [[] for _ in range(n)]
+    work = [0.0] * n
+    for piece in sorted(pieces, key=lambda p: p[0], reverse=True):
+        i = min(range(n), key=work.__getitem__)
+        shares[i].append(piece)
+        work[i] += piece[0]
+    return [shares[i] for i in sorted(range(n), key=lambda i: -work[i]) if shares[i]]
 
 
 def _mesh_report(
