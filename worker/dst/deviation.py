@@ -34,15 +34,17 @@ class MeshCut:
     seg_plane : (n,) int64    plane index of each segment
     loops : (P,) int64        closed loops per plane
     open_chains : (P,) int64  chains that do not close (a mesh with holes or non-manifold edges)
+    vertices : (m, 2) float64 the distinct cut vertices; vertex_plane (m,) their planes
+    seg_node : (n, 2) int64   the vertices each segment joins
     """
 
     seg: np.ndarray
     seg_plane: np.ndarray
     loops: np.ndarray
     open_chains: np.ndarray
-    vertices: np.ndarray  # (m, 2) distinct cut vertices
-    vertex_plane: np.ndarray  # (m,)
-    seg_node: np.ndarray  # (n, 2) int64: the vertices each segment joins
+    vertices: np.ndarray
+    vertex_plane: np.ndarray
+    seg_node: np.ndarray
 
 
 def cut_mesh(vertices: np.ndarray, triangles: np.ndarray, heights: np.ndarray) -> MeshCut:
@@ -584,6 +586,9 @@ def compare(
                 so a maximum between two of them is missed by at most about that tolerance.
     perimeter_err : |L_ref - L_cut| / L_ref
     workers : threads of the nearest-segment searches (-1: all CPUs)
+    Only the per-plane maxima are kept, so a midpoint (of a cut segment, or a reference span's arc
+    midpoint) is searched only where it could raise its plane's maximum (``_bounded_distances``):
+    the maxima are exactly those of a search for every point.
     A plane where one side is empty and the other is not has NaN distances (and perimeter_err 1 when
     the cut is empty, NaN when the reference is); a plane where both are empty has zeros.
     """
