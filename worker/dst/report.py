@@ -934,9 +934,29 @@ def _reference_gaps(
     )
 
 
-def _faces_with_boxes(part: LoadedPart) -> list[tuple[TopoDS_Face, Bnd_Box]]:
-    """The part's faces, each with its box grown by 0.001 mm (more than any point's float32
-    rounding ``_on_a_face`` allows): a filter, the projection decides."""
+@dataclass
+class _FaceProbe:
+    """A face, its box grown by 0.001 mm (more than any point's float32 rounding ``_on_a_face``
+    allows: a filter, the projection decides), and its projector and trim test, made when first
+    needed and then kept (a projector builds a grid over its surface on first use)."""
+
+    face: TopoDS_Face
+    box: Bnd_Box
+    _surface: ShapeAnalysis_Surface | None = None
+    _eval: FaceEval | None = None
+
+    def on_face(self, q: gp_Pnt, tol: float) -> bool:
+        """Does ``q`` lie within ``tol`` of the surface, inside the face's trim?"""
+        if self.box.IsOut(q):
+            return False
+        if self._surface is None:
+            self._surface = ShapeAnalysis_Surface(BRep_Tool.Surface_s(self.face))
+            self._eval = FaceEval(BRepAdaptor_Surface(self.face))
+        u, v = self._surface.ValueOfUV(q, tol).Coord()
+        return self._surface.Gap() <= tol and self._eval.contains(u, v, tol=1e-6)
+
+
+def _faces_with_boxes(part: LoadedPart) -> list[_FaceProbe]:
     out = []
     exp = TopExp_Explorer(part.compound, TopAbs_FACE)
     while exp.More():
@@ -945,24 +965,18 @@ def _faces_with_boxes(part: LoadedPart) -> list[tuple[TopoDS_Face, Bnd_Box]]:
         box = Bnd_Box()
         BRepBndLib.Add_s(face, box, False)
         box.Enlarge(1e-3)
-        out.append((face, box))
+        out.append(_FaceProbe(face, box))
     return out
 
 
-def _on_a_face(
-    faces: list[tuple[TopoDS_Face, Bnd_Box]], p: tuple[float, float, float], tol: float
-) -> float | None:
+def _on_a_face(faces: list[_FaceProbe], p: tuple[float, float, float], tol: float) -> float | None:
     """If ``p`` lies within ``tol`` of a face's surface, inside that face's trim: the largest
     tolerance of that face's edges (how far its boundary may be from its neighbours'); else None. (A
     point on an edge its faces do not meet, in a file with large edge tolerances, is not on a face.)"""
     q = gp_Pnt(*p)
-    for face, box in faces:
-        if box.IsOut(q):
-            continue
-        surface = ShapeAnalysis_Surface(BRep_Tool.Surface_s(face))
-        u, v = surface.ValueOfUV(q, tol).Coord()
-        if surface.Gap() <= tol and FaceEval(BRepAdaptor_Surface(face)).contains(u, v, tol=1e-6):
-            return max_tolerance(face, TopAbs_EDGE)
+    for probe in faces:
+        if probe.on_face(q, tol):
+            return max_tolerance(probe.face, TopAbs_EDGE)
     return None
 
 
