@@ -29,10 +29,10 @@ def circle(r: float, n: int, cx: float = 0.0, cy: float = 0.0, phase: float = 0.
     return np.column_stack([cx + r * np.cos(t), cy + r * np.sin(t)])
 
 
-def prism(polygon: np.ndarray, z: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
-    """A closed prism over a CCW polygon with vertex rings at the heights ``z`` (ascending)."""
-    n = len(polygon)
-    v = np.vstack([np.column_stack([polygon, np.full(n, zk)]) for zk in z])
+def stacked(rings: list[np.ndarray], z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A closed mesh through rings of equal vertex count (CCW) at heights ``z``, capped at both ends."""
+    n = len(rings[0])
+    v = np.vstack([np.column_stack([r, np.full(n, zk)]) for r, zk in zip(rings, z, strict=True)])
     tris = []
     for k in range(len(z) - 1):
         for i in range(n):
@@ -42,6 +42,11 @@ def prism(polygon: np.ndarray, z: tuple[float, ...]) -> tuple[np.ndarray, np.nda
     for i in range(1, n - 1):
         tris += [(0, i + 1, i), (top, top + i, top + i + 1)]
     return v, np.array(tris, dtype=np.int64)
+
+
+def prism(polygon: np.ndarray, z: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """A closed prism over a CCW polygon with vertex rings at the heights ``z`` (ascending)."""
+    return stacked([polygon] * len(z), np.asarray(z, dtype=np.float64))
 
 
 def reference(loops_per_plane: list[list[np.ndarray]]) -> tuple[SegmentSet, np.ndarray]:
@@ -262,21 +267,6 @@ def test_segment_neighbours_along_chains():
     seg_node = np.array([[0, 1], [2, 1], [2, 0], [3, 4], [4, 5]])
     nb = segment_neighbours(seg_node, 6)
     assert nb.tolist() == [[2, 1], [2, 0], [1, 0], [3, 4], [3, 4]]
-
-
-def stacked(rings: list[np.ndarray], z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A closed mesh through rings of equal vertex count (CCW) at heights ``z``, capped at both ends."""
-    n = len(rings[0])
-    v = np.vstack([np.column_stack([r, np.full(n, zk)]) for r, zk in zip(rings, z, strict=True)])
-    tris = []
-    for k in range(len(z) - 1):
-        for i in range(n):
-            a, b = k * n + i, k * n + (i + 1) % n
-            tris += [(a, b, b + n), (a, b + n, a + n)]
-    top = (len(z) - 1) * n
-    for i in range(1, n - 1):
-        tris += [(0, i + 1, i), (top, top + i, top + i + 1)]
-    return v, np.array(tris, dtype=np.int64)
 
 
 def every_point_searched(cut, ref: SegmentSet, n_planes: int) -> tuple[np.ndarray, np.ndarray]:
