@@ -485,8 +485,8 @@ def _build_report(
         )
     todo.extend(meshes)
     report("measuring meshes", 0.4)
-    # Measured in helper processes, each mesh in plane ranges of about equal work so that the
-    # helpers finish together, largest first; one k-d tree thread each when they run side by side.
+    # Measured in helper processes (see ``start``); one k-d tree thread each when they run side by
+    # side.
     workers = 1 if tasks.forked and tasks.limit > 1 else -1
     ref_per_plane = np.bincount(ref_set.seg_plane, minlength=n_planes)
     measuring: dict[int, list[tuple[int, Task, int]]] = {}  # per mesh: (first plane, task, piece)
