@@ -518,7 +518,7 @@ def max_per_plane(values: np.ndarray, plane: np.ndarray, n_planes: int) -> np.nd
     return out
 
 
-def segment_neighbours(seg_node: np.ndarray, n_nodes: int) -> np.ndarray:
+def segment_neighbours(seg_node: np.ndarray) -> np.ndarray:
     """(n, 2): for each segment, the other segment at each of its ends where exactly two meet there
     (along a chain), else the segment itself."""
     n = len(seg_node)
@@ -614,7 +614,7 @@ def compare(
         cut.seg,
         cut.seg_plane,
         spacing=ref.spacing,
-        neighbours=segment_neighbours(cut.seg_node, len(cut.vertices)),
+        neighbours=segment_neighbours(cut.seg_node),
     )
     # every vertex of the closed reference loops and the curve's point over every span's midpoint;
     # with loops known, each span's peak is interpolated from its three values (the midpoints

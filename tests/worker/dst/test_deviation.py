@@ -265,7 +265,7 @@ def test_nearest_names_a_segment_at_that_distance():
 def test_segment_neighbours_along_chains():
     # a closed triangle 0-1-2 (segments in any direction) and an open chain 3-4-5
     seg_node = np.array([[0, 1], [2, 1], [2, 0], [3, 4], [4, 5]])
-    nb = segment_neighbours(seg_node, 6)
+    nb = segment_neighbours(seg_node)
     assert nb.tolist() == [[2, 1], [2, 0], [1, 0], [3, 4], [3, 4]]
 
 
