@@ -9,6 +9,7 @@ along its rings, and a flat face lying on a plane gives the outline above it.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -539,7 +540,7 @@ def _bounded_distances(
     pts: np.ndarray,
     plane: np.ndarray,
     candidates: np.ndarray,
-    value,
+    value: Callable[[np.ndarray], np.ndarray],
     lower: np.ndarray,
     n_planes: int,
     workers: int,
