@@ -32,6 +32,11 @@ def open_edges(tris: np.ndarray, n_vertices: int) -> np.ndarray:
     return e[~np.isin(key, e[:, 1] * n_vertices + e[:, 0])]
 
 
+def repeated_corner(tris: np.ndarray) -> np.ndarray:
+    """Mask of the triangles (n, 3) that repeat a corner (degenerate: no area, two cancelling edges)."""
+    return (tris[:, 0] == tris[:, 1]) | (tris[:, 1] == tris[:, 2]) | (tris[:, 2] == tris[:, 0])
+
+
 def signed_volume(xyz: np.ndarray, tris: np.ndarray) -> float:
     """Signed volume (mm^3) enclosed by a closed triangle mesh (divergence theorem); > 0 if outward."""
     a, b, c = xyz[tris[:, 0]], xyz[tris[:, 1]], xyz[tris[:, 2]]

@@ -49,7 +49,7 @@ from worker.dst.deviation import (
 from worker.dst.errors import DstError, ResourceLimitExceeded, TessellationError
 from worker.dst.exact import FaceEval
 from worker.dst.forked import Task, TaskDied, TaskGroup
-from worker.dst.meshops import edge_defects, signed_volume
+from worker.dst.meshops import edge_defects, repeated_corner, signed_volume
 from worker.dst.params import SliceParams
 from worker.dst.pipeline import (
     DstMesh,
@@ -119,7 +119,7 @@ def conventional_mesh(
     finally:
         BRepTools.Clean_s(comp)
     t = inv.reshape(-1, 3)
-    return v.astype(np.float64), t[(t[:, 0] != t[:, 1]) & (t[:, 1] != t[:, 2]) & (t[:, 2] != t[:, 0])]
+    return v.astype(np.float64), t[~repeated_corner(t)]
 
 
 @dataclass
@@ -820,8 +820,9 @@ def _mesh_report(
 
 
 def _plane_costs(v: np.ndarray, tr: np.ndarray, heights: np.ndarray, ref_per_plane: np.ndarray) -> np.ndarray:
-    """Work of measuring a mesh placed by ``_on_bed`` at each plane: its cut's segments (two
-    searches each: vertex and midpoint) and the reference's spans (two points each)."""
+    """Relative work of measuring a mesh placed by ``_on_bed`` at each plane: its cut's segments
+    (a vertex searched and a midpoint bounded each) and the reference's spans (the same), weighed
+    alike."""
     n = len(heights)
     crossings = np.zeros(n + 1)
     if len(tr):

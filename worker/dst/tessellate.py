@@ -19,6 +19,7 @@ import math
 
 import numpy as np
 
+from worker.dst.meshops import repeated_corner
 from worker.dst.sampling import RingSampler, VertexPool
 from worker.dst.sections import SectionTopology
 
@@ -58,7 +59,7 @@ def tessellate_solid(sampler: RingSampler) -> tuple[np.ndarray, dict]:
     # a repeated corner. Such a triangle adds the edges a->b and b->a, which cancel: dropping it keeps
     # the mesh closed.
     tris = np.concatenate([*strips, np.asarray(out, dtype=np.int64).reshape(-1, 3)])
-    tris = tris[(tris[:, 0] != tris[:, 1]) & (tris[:, 1] != tris[:, 2]) & (tris[:, 2] != tris[:, 0])]
+    tris = tris[~repeated_corner(tris)]
     stats = {
         "loops": len(topo.loops),
         "free_loops": int(free.sum()),

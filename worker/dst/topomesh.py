@@ -39,7 +39,7 @@ from scipy.spatial import cKDTree
 
 from worker.dst.errors import TessellationError, UnmeshedFaceError
 from worker.dst.exact import EdgeEval, FaceEval
-from worker.dst.meshops import edge_defects, open_edges, signed_volume
+from worker.dst.meshops import edge_defects, open_edges, repeated_corner, signed_volume
 
 # BRepMesh leaves a face without triangles: closed from its neighbours' nodes if its box diagonal
 # is within this many deflections (any triangle across it is then within the mesh's tolerance).
@@ -276,7 +276,7 @@ def _merge_open_nodes(xyz: np.ndarray, holes: np.ndarray, tol: float) -> np.ndar
 
 def _drop_degenerate(tris: np.ndarray, *per_triangle: np.ndarray):
     """The triangles that do not repeat a corner, with the same rows of each per-triangle array."""
-    keep = (tris[:, 0] != tris[:, 1]) & (tris[:, 1] != tris[:, 2]) & (tris[:, 2] != tris[:, 0])
+    keep = ~repeated_corner(tris)
     return (tris[keep], *(a[keep] for a in per_triangle))
 
 
