@@ -166,6 +166,15 @@ def test_empty_cut_and_missing_loop_are_reported():
     assert m.vertex_dev[2] == 0.0 and m.chord_dev[2] == 0.0 and m.perimeter_err[2] == 0.0
 
 
+def brute_force_distances(seg, plane, pts, pts_plane) -> np.ndarray:
+    """Each point's distance to the nearest segment of its plane, over every segment."""
+    ab = seg[:, 1] - seg[:, 0]  # (s, 2)
+    ap = pts[:, None, :] - seg[None, :, 0]  # (p, s, 2)
+    tt = np.clip(np.einsum("psi,si->ps", ap, ab) / np.einsum("si,si->s", ab, ab), 0, 1)
+    dist = np.linalg.norm(ap - tt[..., None] * ab, axis=2)
+    return np.where(plane[None, :] == pts_plane[:, None], dist, np.inf).min(axis=1)
+
+
 def test_segment_distances_are_exact_against_brute_force():
     """Every point's distance, near the segments (found by the first, bounded search) and far from
     them (beyond its bound: searched again)."""
@@ -176,11 +185,7 @@ def test_segment_distances_are_exact_against_brute_force():
     pts = rng.uniform(-8, 8, (2000, 2))
     pts_plane = rng.integers(0, 3, 2000)
     d = SegmentSet(seg, plane, spacing=0.7).distance(pts, pts_plane)
-    ab = seg[:, 1] - seg[:, 0]  # (s, 2)
-    ap = pts[:, None, :] - seg[None, :, 0]  # (p, s, 2)
-    tt = np.clip(np.einsum("psi,si->ps", ap, ab) / np.einsum("si,si->s", ab, ab), 0, 1)
-    dist = np.linalg.norm(ap - tt[..., None] * ab, axis=2)
-    brute = np.where(plane[None, :] == pts_plane[:, None], dist, np.inf).min(axis=1)
+    brute = brute_force_distances(seg, plane, pts, pts_plane)
     np.testing.assert_allclose(d, brute, rtol=0, atol=1e-12)
     assert (brute < 0.2).sum() > 200 and (brute > 1.5).sum() > 200  # both searches were needed
 
@@ -200,11 +205,7 @@ def test_fine_polylines_are_measured_exactly_too():
     pts = rng.uniform(-8, 8, (3000, 2))
     pts_plane = rng.integers(0, 3, 3000)
     d = s.distance(pts, pts_plane)
-    ab = seg[:, 1] - seg[:, 0]
-    ap = pts[:, None, :] - seg[None, :, 0]
-    tt = np.clip(np.einsum("psi,si->ps", ap, ab) / np.einsum("si,si->s", ab, ab), 0, 1)
-    dist = np.linalg.norm(ap - tt[..., None] * ab, axis=2)
-    brute = np.where(plane[None, :] == pts_plane[:, None], dist, np.inf).min(axis=1)
+    brute = brute_force_distances(seg, plane, pts, pts_plane)
     np.testing.assert_allclose(d, brute, rtol=0, atol=1e-12)
     assert (brute < 0.05).sum() > 20 and (brute > 1.0).sum() > 1000
 
