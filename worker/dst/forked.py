@@ -141,6 +141,14 @@ class Task:
                 return
             self._read(block=True)
 
+    def items_ready(self) -> list[Any]:
+        """The values the child has sent and no one has taken yet, without waiting for more."""
+        if not self.done():
+            self._read(block=False)
+        taken = list(self._items)
+        self._items.clear()
+        return taken
+
     def _read(self, *, block: bool) -> None:
         """Take what the child has written: without waiting, or (``block``) until at least one more
         message or its end."""

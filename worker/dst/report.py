@@ -527,7 +527,8 @@ def _build_report(
         occt = _occt_result(side)
         start(todo + made)
         todo.extend(made)
-    else:  # the meshes at hand, then each baseline as soon as OCCT has made it
+    else:  # the meshes at hand (with the baselines OCCT has made), then each one as soon as it is made
+        todo.extend(side.items_ready())
         start(todo)
         report("conventional meshes", 0.5)
         for base in side.items():

@@ -143,6 +143,37 @@ def test_a_generator_tasks_values_arrive_while_it_works_on_unread():
         assert t.result() is True
 
 
+def _two_then_wait(marker: str):
+    """Yield two values; then wait (up to 20 s) for the parent's marker and yield a third."""
+    yield "first"
+    yield "second"
+    deadline = time.monotonic() + 20.0
+    while not os.path.exists(marker) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    yield "third"
+
+
+@needs_fork
+def test_the_values_a_running_task_has_sent_are_taken_without_waiting_for_more():
+    """``items_ready`` returns what the child has sent so far while it is still at work (the report
+    measures the baselines already made together); ``items`` then gives only the rest."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp, TaskGroup(forked=True) as tasks:
+        marker = os.path.join(tmp, "go-on")
+        t = tasks.submit(_two_then_wait, marker)
+        got: list[str] = []
+        deadline = time.monotonic() + 20.0
+        while len(got) < 2 and time.monotonic() < deadline:
+            got += t.items_ready()  # never blocks: the child waits for the marker after two
+            time.sleep(0.01)
+        assert got == ["first", "second"]
+        assert not t.done() and t.items_ready() == []
+        open(marker, "w").close()
+        assert list(t.items()) == ["third"]
+        t.result()
+
+
 def _wrapped_stream(fail: str):
     return _stream_then(fail)  # not a generator function: returns a generator
 
