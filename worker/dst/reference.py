@@ -27,6 +27,7 @@ from OCP.TopoDS import TopoDS
 
 from worker.dst import constants as C
 from worker.dst.errors import TessellationError
+from worker.dst.forked import TaskGroup
 from worker.dst.lowest import snap_extremes
 from worker.dst.pipeline import bbox_diagonal
 from worker.dst.ridges import prepare_extremes
@@ -46,6 +47,8 @@ RETRY_DEFLECTIONS = (1.0, 0.7, 1.4, 2.0)
 # Offsets tried in turn: a node of another face within the file's tolerance of the plane (a wall's
 # vertex 0.1 um below a face it bounds) can put a crossing where a tiny offset has no exact point.
 FLAT_FACE_OFFSETS_MM = (4e-9, 1e-7, 2e-6, 3e-5)
+# The reference's sampling in this many shares of its planes, all but the first in forked helpers
+SAMPLING_SHARES = 2
 Pair = tuple[np.ndarray, np.ndarray]  # a closed loop (k, 2) and its corner mask (k,)
 T = TypeVar("T")
 
@@ -87,11 +90,14 @@ def exact_sections(
     segment_length: float,
     deflection: float,
     parallel: bool = True,
+    helper: bool = True,
 ) -> ExactSections:
     """Dense exact sections of ``part`` at ``heights`` above its exact lowest point.
 
     ``heights`` may be a function of the part's exact height (highest minus lowest point).
     ``parallel``: the topology mesh's faces on OCCT's thread pool (never in a forked process).
+    ``helper``: the sampling of the upper planes in a forked helper process (see ``_sample``); the
+    sections are the same either way.
     """
     diag, _ = bbox_diagonal(part)  # merge tolerance relative to the whole part, as in the DST build
     meshes, used = zip(
@@ -108,7 +114,7 @@ def exact_sections(
     # as in the DST build: a node within half a float32 step of a plane is on it (what a slicer sees)
     noise = 0.5 * np.spacing(np.abs(np.asarray(heights, dtype=np.float32))).astype(np.float64)
     # per solid: (loop, corner mask) pairs at each plane, and just below its flat faces
-    per_solid = [_solid_sections(mesh, world, noise, chord, segment_length) for mesh in meshes]
+    per_solid = [_solid_sections(mesh, world, noise, chord, segment_length, helper) for mesh in meshes]
     flat = sorted({j for _, below, _ in per_solid for j in below})
     # just below a flat face on plane j: that solid's section there, every other solid's at j
     pairs_below = {j: [p for on, below, _ in per_solid for p in below.get(j, on[j])] for j in flat}
@@ -139,7 +145,7 @@ def exact_sections(
 
 
 def _solid_sections(
-    mesh, world: np.ndarray, noise: np.ndarray, chord: float, segment_length: float
+    mesh, world: np.ndarray, noise: np.ndarray, chord: float, segment_length: float, helper: bool = True
 ) -> tuple[list[list[Pair]], dict[int, list[Pair]], float | None]:
     """One solid's dense sections: (loop, corner mask) pairs per plane, and per plane through a flat
     face of the solid, the pairs just below the face (the per-plane ones are then just above it);
@@ -147,7 +153,14 @@ def _solid_sections(
     topo = cut_topology(mesh, world, on_plane_tol=C.ON_PLANE_TOL_MM, noise_tol=noise)
     if not topo.flat_planes:
         return *_sample(
-            mesh, topo, np.arange(len(world)), np.zeros(len(world), dtype=bool), [], chord, segment_length
+            mesh,
+            topo,
+            np.arange(len(world)),
+            np.zeros(len(world), dtype=bool),
+            [],
+            chord,
+            segment_length,
+            helper,
         ), None
     # The solid's section at a plane through its flat face is an area: take the sections just above
     # and just below the face instead (the outlines of what stands on it and of what it caps: the two
@@ -166,7 +179,7 @@ def _solid_sections(
         lowered = np.concatenate([np.zeros(len(world), dtype=bool), np.ones(len(j), dtype=bool)])[order]
         tight = 0.25 * offset
         cut = cut_topology(placed, ext[order], on_plane_tol=tight, noise_tol=np.full(len(ext), tight))
-        return *_sample(placed, cut, owner, lowered, topo.flat_planes, chord, segment_length), offset
+        return *_sample(placed, cut, owner, lowered, topo.flat_planes, chord, segment_length, helper), offset
 
     return _first_that_works(at, FLAT_FACE_OFFSETS_MM)
 
@@ -182,25 +195,55 @@ def _first_that_works(fn: Callable[[float], T], values: tuple[float, ...]) -> T:
     return fn(values[-1])
 
 
-def _sample(mesh, topo, owner, lowered, flat, chord, segment_length):
+def _sample(mesh, topo, owner, lowered, flat, chord, segment_length, helper=True):
     """The dense loops of a cut, as (loop, corner mask) pairs per plane ``owner[e]`` of each cut
-    plane ``e``, the ``lowered`` ones apart per flat plane."""
+    plane ``e``, the ``lowered`` ones apart per flat plane.
+
+    The sampling (most of the reference's work after its topology mesh) is done in shares of the
+    cut's planes (``_plane_shares``), each by a sampler of its own: with ``helper``, all but the
+    first in forked helper processes, on a core the rest of the report leaves idle (the soapbox's
+    reference takes twice as long as its baselines). The loops of one plane stay together (they
+    may share nodes lying in the plane), and each share's loops are the same whether it runs here
+    or in a helper."""
+    shares = _plane_shares(topo, SAMPLING_SHARES)
+    with TaskGroup(forked=helper and len(shares) > 1, limit=max(1, len(shares) - 1)) as tasks:
+        later = [tasks.submit(_sample_loops, mesh, topo, ids, chord, segment_length) for ids in shares[1:]]
+        sampled = _sample_loops(mesh, topo, shares[0], chord, segment_length) if shares else {}
+        for task in later:
+            sampled.update(task.result())
+    on_plane: list[list[Pair]] = [[] for _ in range(int(owner.max()) + 1 if len(owner) else 0)]
+    below: dict[int, list[Pair]] = {int(k): [] for k in flat}
+    for li in sorted(sampled):
+        e = int(topo.loops[li][0])
+        (below[int(owner[e])] if lowered[e] else on_plane[int(owner[e])]).append(sampled[li])
+    return on_plane, below
+
+
+def _plane_shares(topo, n: int) -> list[list[int]]:
+    """The cut's loops in at most ``n`` shares of every ``n``-th plane (neighbouring planes cut much
+    the same curves, so the shares take about equal work; by ranges of planes, weighed by their
+    topology crossings, the soapbox's upper half took twice its lower half's time); no share empty."""
+    by_share: list[list[int]] = [[] for _ in range(n)]
+    for li, (j, _) in enumerate(topo.loops):
+        by_share[int(j) % n].append(li)
+    return [ids for ids in by_share if ids]
+
+
+def _sample_loops(mesh, topo, loop_ids: list[int], chord: float, segment_length: float) -> dict[int, Pair]:
+    """The (dense loop, corner mask) of each of ``loop_ids``, by a sampler of their own."""
     pool = VertexPool()
     sampler = RingSampler(mesh, topo, pool, segment_length=segment_length, chord_error=chord)
     annulus = topo.comp_is_annulus
-    free = annulus[topo.loop_below] & annulus[topo.loop_above]
-    rings = sampler.free_loops(np.flatnonzero(free).tolist())
-    for li in np.flatnonzero(~free).tolist():
+    ids = np.asarray(loop_ids, dtype=np.int64)
+    free = annulus[topo.loop_below[ids]] & annulus[topo.loop_above[ids]]
+    rings = sampler.free_loops(ids[free].tolist())
+    for li in ids[~free].tolist():
         rings[li] = sampler.pinned_loop(li)
-    on_plane: list[list[Pair]] = [[] for _ in range(int(owner.max()) + 1 if len(owner) else 0)]
-    below: dict[int, list[Pair]] = {int(k): [] for k in flat}
     xyz = pool.xyz
-    for li in sorted(rings):
-        ids = rings[li]
-        e = int(topo.loops[li][0])
-        pair = (xyz[ids, :2].copy(), np.array([v in sampler.corner_vids for v in ids], dtype=bool))
-        (below[int(owner[e])] if lowered[e] else on_plane[int(owner[e])]).append(pair)
-    return on_plane, below
+    return {
+        li: (xyz[vids, :2].copy(), np.array([v in sampler.corner_vids for v in vids], dtype=bool))
+        for li, vids in rings.items()
+    }
 
 
 def occt_sections(

@@ -80,8 +80,11 @@ MIN_MEASURE_CHUNK = 60_000
 # Measuring the DST mesh costs this fraction of what ``_plane_costs`` says (its cut's vertices lie
 # on the exact sections: their searches end at once); measured on the hemisphere and the soapbox
 DST_COST = 0.65
-# Niceness of a job's helpers that start beside its DST build: they take the cores it leaves idle
+# Niceness of a job's helpers that start beside its DST build: they take the cores it leaves idle.
+# Where they share one, the exact reference goes first: it holds up the measuring of every mesh, a
+# baseline only its own (the meshes at hand are measured while OCCT finishes the others).
 BACKGROUND_NICE = 10
+OCCT_SIDE_NICE = 15
 VOLUME_WARN_REL = 0.01  # a mesh enclosing 1% more or less than the solid is worth a warning
 # A DST ring vertex this far from the exact reference (mm) is checked against the B-rep: lying on it,
 # it shows a part of the section the reference missed (its own topology mesh passed between the plane
@@ -168,11 +171,16 @@ class _Reference:
 
 
 def _exact_reference(
-    part: LoadedPart, params: SliceParams, heights: np.ndarray | None, parallel: bool = True
+    part: LoadedPart,
+    params: SliceParams,
+    heights: np.ndarray | None,
+    parallel: bool = True,
+    helper: bool = True,
 ) -> _Reference:
     """The report's exact sections at ``heights`` (None: the planes ``params`` give for the part's
     exact height, found by the reference itself), from their own, finer topology mesh. ``parallel``:
-    OCCT's thread pool may be used (not in a forked helper)."""
+    OCCT's thread pool may be used (not in a forked helper); ``helper``: half the sampling in a
+    forked helper of its own."""
     t = time.perf_counter()
     diag, _ = bbox_diagonal(part)
     chord = min(REFERENCE_CHORD_MM, 0.1 * params.chord_error)
@@ -187,6 +195,7 @@ def _exact_reference(
         segment_length=REFERENCE_SEGMENT_MM,
         deflection=0.5 * topo_deflection(diag),  # finer than the DST build's: its own topology
         parallel=parallel,
+        helper=helper,
     )
     return _Reference(sections, chord, time.perf_counter() - t)
 
@@ -408,9 +417,11 @@ def slice_and_report(
         # Inline (nothing to overlap): after the build.
         side = reference = None
         if tasks.forked:
-            side = _start_occt_side(tasks, part, baselines, nice=BACKGROUND_NICE)
+            side = _start_occt_side(tasks, part, baselines, nice=OCCT_SIDE_NICE)
             if tasks.limit >= 2:
-                reference = tasks.submit(_exact_reference, part, params, None, False, nice=BACKGROUND_NICE)
+                reference = tasks.submit(
+                    _exact_reference, part, params, None, False, True, nice=BACKGROUND_NICE
+                )
         mesh = slice_part(part, params, progress=lambda s, f: report(s, 0.5 * f), t0=t0)
         if on_mesh is not None:
             on_mesh(mesh)
@@ -461,7 +472,7 @@ def _build_report(
         if dst_heights is not None and not np.array_equal(made.sections.heights, dst_heights):
             made = None  # planned for a slightly different exact height: made again at the build's planes
     if made is None:
-        made = _exact_reference(part, params, dst_heights)
+        made = _exact_reference(part, params, dst_heights, helper=tasks.forked)
     ref, chord = made.sections, made.chord
     heights = ref.heights
     t = time.perf_counter()

@@ -262,6 +262,65 @@ def test_reference_finds_the_sliver_below_a_horizontal_hole_top(tmp_path):
         assert np.abs(p[:, 1]).min() == pytest.approx(w, abs=1e-7)
 
 
+def test_reference_sampling_shares_out_every_plane_whole(hemisphere):
+    """The reference's sampling shares: every loop in exactly one, a plane's loops together, the
+    planes dealt out in turn (neighbouring planes cost about the same)."""
+    from worker.dst import reference
+
+    _, mesh, _, _ = hemisphere
+    topo = _cut_of(mesh)
+    shares = reference._plane_shares(topo, 2)
+    assert sorted(li for share in shares for li in share) == list(range(len(topo.loops)))
+    planes = [{topo.loops[li][0] for li in share} for share in shares]
+    assert len(planes) == 2 and not planes[0] & planes[1]
+    assert {j % 2 for j in planes[0]} == {0} and {j % 2 for j in planes[1]} == {1}
+    assert reference._plane_shares(topo, 1) == [list(range(len(topo.loops)))]
+
+
+def _cut_of(mesh):
+    from worker.dst import constants as C
+    from worker.dst.pipeline import bbox_diagonal
+    from worker.dst.reference import _reference_topomesh
+    from worker.dst.sections import cut_topology
+
+    topomesh, _ = _reference_topomesh(mesh.part.solids[0], 0.01, bbox_diagonal(mesh.part)[0], parallel=False)
+    world = topomesh.xyz[:, 2].min() + mesh.planes.section_z
+    return cut_topology(topomesh, world, on_plane_tol=C.ON_PLANE_TOL_MM, noise_tol=np.zeros(len(world)))
+
+
+def test_reference_sampled_in_a_helper_is_the_reference_sampled_here(hemisphere, monkeypatch, tmp_path):
+    """With a helper, the upper share of the reference's planes is sampled in another process, and
+    the sections are exactly the ones sampled all in this process."""
+    import os
+
+    from worker.dst import reference
+    from worker.dst.forked import fork_available
+
+    if not fork_available():
+        pytest.skip("fork is used on Linux only")
+    _, mesh, _, _ = hemisphere
+    log = tmp_path / "pids.txt"
+    real = reference._sample_loops
+
+    def logged(*args):
+        with open(log, "a") as fh:
+            fh.write(f"{os.getpid()}\n")
+        return real(*args)
+
+    monkeypatch.setattr(reference, "_sample_loops", logged)
+    heights = mesh.planes.section_z
+    kw = dict(chord=1e-3, segment_length=2.0, deflection=0.01, parallel=False)
+    shared = exact_sections(mesh.part, heights, helper=True, **kw)
+    pids = log.read_text().split()
+    assert len(pids) == 2 and pids[0] == str(os.getpid()) != pids[1]
+    here = exact_sections(mesh.part, heights, helper=False, **kw)
+    assert set(log.read_text().split()[2:]) == {str(os.getpid())}
+    for a, b in zip(shared.loops, here.loops, strict=True):
+        assert len(a) == len(b) > 0
+        for p, q in zip(a, b, strict=True):
+            np.testing.assert_array_equal(p, q)
+
+
 def test_reference_topology_retries_another_deflection(tmp_path, monkeypatch):
     """BRepMesh's mesh is not a closed manifold at some deflections on some files (11752.stp at the
     reference's): the reference then takes the next deflection that works, and says which."""
@@ -529,6 +588,43 @@ def test_slice_and_report_gives_the_mesh_and_report_of_the_two_steps(hemisphere,
     assert report.input == two_steps.input and report.warnings == two_steps.warnings
 
 
+def test_a_jobs_helpers_yield_to_the_build_and_the_reference_to_nothing_else(
+    hemisphere, monkeypatch, tmp_path
+):
+    """Both helpers of a job run at a lower priority than its DST build; of the two, the exact
+    reference (which holds up the measuring of every mesh) at the higher one."""
+    import os
+
+    from worker.dst import report as report_mod
+    from worker.dst.forked import fork_available
+    from worker.dst.report import slice_and_report
+
+    if not fork_available():
+        pytest.skip("fork is used on Linux only")
+    mine = os.nice(0)
+    if mine + report_mod.OCCT_SIDE_NICE > 19:
+        pytest.skip("this process is niced already: no room below it for the helpers' order")
+    log = tmp_path / "nice.txt"
+    real_reference, real_side = report_mod._exact_reference, report_mod._occt_side
+
+    def reference(*args):
+        with open(log, "a") as fh:
+            fh.write(f"reference {os.nice(0)}\n")
+        return real_reference(*args)
+
+    def side(*args):  # a generator function, as _occt_side is
+        with open(log, "a") as fh:
+            fh.write(f"occt {os.nice(0)}\n")
+        return (yield from real_side(*args))
+
+    monkeypatch.setattr(report_mod, "_exact_reference", reference)
+    monkeypatch.setattr(report_mod, "_occt_side", side)
+    path, _, _, _ = hemisphere
+    slice_and_report(path, SliceParams(layer_height=0.2), baselines=["occt_fast"], processes=2)
+    nice = {name: int(value) for name, value in (line.split() for line in log.read_text().splitlines())}
+    assert mine < nice["reference"] < nice["occt"]
+
+
 def test_a_reference_planned_for_other_planes_than_the_builds_is_made_again(hemisphere, monkeypatch):
     """The job's reference helper plans its planes from its own exact height, before the DST build
     has its own: where the two plans differ (here: the helper's made to lose the top plane), the
@@ -545,12 +641,12 @@ def test_a_reference_planned_for_other_planes_than_the_builds_is_made_again(hemi
     params = SliceParams(layer_height=0.2)
     real, here, main = report_mod._exact_reference, [], os.getpid()
 
-    def planned_apart(part, params, heights, parallel=True):
+    def planned_apart(part, params, heights, parallel=True, helper=True):
         if heights is None:  # the helper's call: one plane short
             heights = mesh.planes.section_z[:-1]
         elif os.getpid() == main:
             here.append(len(heights))
-        return real(part, params, heights, parallel)
+        return real(part, params, heights, parallel, helper)
 
     monkeypatch.setattr(report_mod, "_exact_reference", planned_apart)
     _, report = slice_and_report(path, params, baselines=[], processes=2)
