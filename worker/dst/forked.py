@@ -331,6 +331,21 @@ class TaskGroup:
             self._running.append(task)
         return task
 
+    def free(self) -> int:
+        """How many tasks could start now without waiting."""
+        self._running = [t for t in self._running if not t.ready()]
+        return self.limit - len(self._running)
+
+    def wait_any(self) -> None:
+        """Block until a running child sends something (a value or its outcome); at once if none runs."""
+        running = [t for t in self._running if not t.done()]
+        if not running:
+            return
+        ready, _, _ = select.select([t.fileno for t in running], [], [])
+        for t in running:
+            if t.fileno in ready:
+                t._read(block=False)
+
     def _wait_one(self) -> None:
         """Block until one running child has sent its outcome (taking what the others send)."""
         while True:

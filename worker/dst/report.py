@@ -502,10 +502,17 @@ def _build_report(
     ref_per_plane = np.bincount(ref_set.seg_plane, minlength=n_planes)
     measuring: dict[int, list[tuple[int, Task, int]]] = {}  # per mesh: (first plane, task, piece)
 
-    def start(ms: list[MeshInput]) -> None:
-        # The meshes' plane ranges packed into at most one task per helper, of about equal work
-        # (each task at least MIN_MEASURE_CHUNK: a fork costs ~25 ms of CPU), the largest first.
-        placed = {id(m): _on_bed(m) for m in ms}  # once per mesh; the helpers share it
+    # Each mesh's plane ranges ("pieces", each a sixth of a helper's share or less) wait here, largest
+    # first, until a helper or this process takes them: a free helper gets a share of about equal work
+    # with every other free one and this process (each share at least MIN_MEASURE_CHUNK: a fork costs
+    # ~25 ms of CPU), and this process measures the rest piece by piece, handing out again as helpers
+    # free up and meshes arrive. So no core waits for a share handed out before the last mesh came.
+    pending: list[tuple[float, MeshInput, int, int]] = []
+    placed: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # once per mesh; the helpers share it
+
+    def add(ms: list[MeshInput]) -> None:
+        for m in ms:
+            placed[id(m)] = _on_bed(m)
         costs = {
             id(m): _plane_costs(*placed[id(m)], heights, ref_per_plane)
             * (DST_COST if m.kind == "dst" else 1.0)
@@ -514,38 +521,57 @@ def _build_report(
         total = sum(float(c.sum()) for c in costs.values())
         n_tasks = max(1, min(tasks.limit, int(total // MIN_MEASURE_CHUNK))) if tasks.forked else 1
         chunk = total / (6 * n_tasks) if n_tasks > 1 else np.inf  # pieces small enough to balance
-        pieces = [
+        pending.extend(
             (float(costs[id(m)][j0:j1].sum()), m, j0, j1)
             for m in ms
             for j0, j1 in _plane_ranges(costs[id(m)], chunk)
-        ]
-        for share in _pack(pieces, n_tasks):
-            task = tasks.submit(
-                _measure_pieces,
-                [(*placed[id(m)], j0, j1) for _, m, j0, j1 in share],
-                heights,
-                ref_set,
-                ref_perimeter,
-                below,
-                n_planes,
-                workers,
-            )
-            for k, (_, m, j0, _) in enumerate(share):
-                measuring.setdefault(id(m), []).append((j0, task, k))
+        )
+        pending.sort(key=lambda p: -p[0])
 
-    if side.ready():  # every baseline at hand: all plane ranges balanced together
-        made = list(side.items())
-        occt = _occt_result(side)
-        start(todo + made)
-        todo.extend(made)
-    else:  # the meshes at hand (with the baselines OCCT has made), then each one as soon as it is made
-        todo.extend(side.items_ready())
-        start(todo)
-        report("conventional meshes", 0.5)
-        for base in side.items():
-            start([base])
-            todo.append(base)
-        occt = _occt_result(side)
+    def measure(share: list[tuple[float, MeshInput, int, int]], forked: bool) -> None:
+        args = (
+            [(*placed[id(m)], j0, j1) for _, m, j0, j1 in share],
+            heights,
+            ref_set,
+            ref_perimeter,
+            below,
+            n_planes,
+            workers,
+        )
+        task = tasks.submit(_measure_pieces, *args) if forked else Task(_measure_pieces, args, False)
+        for k, (_, m, j0, _) in enumerate(share):
+            measuring.setdefault(id(m), []).append((j0, task, k))
+
+    def hand_out() -> None:
+        if not tasks.forked:
+            return
+        work = sum(p[0] for p in pending)
+        helpers = min(tasks.free(), int(work // MIN_MEASURE_CHUNK))
+        if helpers < 1:
+            return
+        shares = _pack(pending, helpers + 1)  # the free helpers' and this process's
+        pending[:] = sorted(shares.pop(), key=lambda p: -p[0]) if len(shares) > helpers else []
+        for share in shares:
+            measure(share, True)
+
+    todo.extend(side.items_ready())  # the baselines OCCT has made already
+    add(todo)
+    hand_out()
+    report("conventional meshes", 0.5)
+    while True:
+        if arrived := side.items_ready():  # the others as OCCT makes them
+            todo.extend(arrived)
+            add(arrived)
+            hand_out()
+        elif pending:  # the next piece here, after handing out to helpers that have freed up
+            hand_out()
+            if pending:
+                measure([pending.pop(0)], False)
+        elif side.done():
+            break
+        else:
+            tasks.wait_any()  # a baseline, or a helper done
+    occt = _occt_result(side)
     rank = {name: i for i, name in enumerate(baselines)}  # the baselines in the order asked for
     todo.sort(key=lambda m: rank[m.name] if m.kind == "baseline" else -1)
     report("measuring meshes", 0.7)

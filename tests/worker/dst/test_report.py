@@ -735,6 +735,40 @@ def test_plane_ranges_cover_every_plane_once_in_about_equal_work():
     assert _plane_ranges(np.zeros(0), chunk=1.0) == [(0, 0)]
 
 
+def test_the_reports_own_process_measures_a_share_beside_its_helpers(hemisphere, monkeypatch, tmp_path):
+    """Measuring is shared out between the free helpers and the report's own process (which would
+    otherwise wait), every plane of every mesh measured once: the report is the one-process one."""
+    import os
+
+    from worker.dst import report as report_mod
+    from worker.dst.forked import fork_available
+
+    if not fork_available():
+        pytest.skip("fork is used on Linux only")
+    path, mesh, _, _ = hemisphere
+    main, real, log = os.getpid(), report_mod._measure_pieces, tmp_path / "pieces.txt"
+
+    def logged(pieces, *args):
+        with open(log, "a") as fh:
+            fh.writelines(f"{os.getpid() == main} {len(tr)} {j0} {j1}\n" for _, tr, j0, j1 in pieces)
+        return real(pieces, *args)
+
+    monkeypatch.setattr(report_mod, "_measure_pieces", logged)
+    monkeypatch.setattr(report_mod, "MIN_MEASURE_CHUNK", 1)  # helpers for however little work
+    kw = dict(file_name=str(path), dst=mesh, baselines=["occt_fast"])
+    forked = build_report(mesh.part, SliceParams(layer_height=0.2), **kw)
+    rows = [line.split() for line in log.read_text().splitlines()]
+    assert {here for here, *_ in rows} == {"True", "False"}
+    n_planes = len(mesh.planes.z)
+    for tris in {t for _, t, _, _ in rows}:  # each mesh's planes, once
+        ranges = sorted((int(a), int(b)) for _, t, a, b in rows if t == tris)
+        assert ranges[0][0] == 0 and ranges[-1][1] == n_planes
+        assert all(b == c for (_, b), (c, _) in zip(ranges, ranges[1:], strict=False))
+    assert _numbers(forked) == _numbers(
+        build_report(mesh.part, SliceParams(layer_height=0.2), processes=1, **kw)
+    )
+
+
 def test_a_measuring_helper_that_dies_is_a_resource_error(hemisphere, monkeypatch):
     """A helper killed while measuring (the OOM killer's way) ends the report with a clear
     ``resource_limit`` error saying what to change, not an internal error."""
@@ -749,12 +783,16 @@ def test_a_measuring_helper_that_dies_is_a_resource_error(hemisphere, monkeypatc
     if not fork_available():
         pytest.skip("fork is used on Linux only")
     path, mesh, _, _ = hemisphere
+    main, real = os.getpid(), report_mod._measure_pieces
 
     def killed(*args, **kwargs):
+        if os.getpid() == main:  # this process measures a share too
+            return real(*args, **kwargs)
         faulthandler.disable()
         os.kill(os.getpid(), signal.SIGKILL)
 
     monkeypatch.setattr(report_mod, "_measure_pieces", killed)
+    monkeypatch.setattr(report_mod, "MIN_MEASURE_CHUNK", 1)  # a helper for however little work
     with pytest.raises(ResourceLimitExceeded, match=r"signal 9.*--processes 1") as info:
         build_report(mesh.part, SliceParams(layer_height=0.2), file_name=str(path), dst=mesh, baselines=[])
     assert info.value.code == "resource_limit"
