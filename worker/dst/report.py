@@ -77,6 +77,9 @@ CURA_MIN_CIRCUMFERENCE_MM = 1.0
 # A measuring helper gets at least this much work (``_plane_costs`` units: searched points; ~0.1 s
 # on the development machine): less costs more to fork than it saves.
 MIN_MEASURE_CHUNK = 60_000
+# While OCCT still makes baselines (and the report's own process does not measure), less waiting
+# work than this many MIN_MEASURE_CHUNKs goes to the free helpers at once
+LAST_OUT_CHUNKS = 4
 # Measuring the DST mesh costs this fraction of what ``_plane_costs`` says (its cut's vertices lie
 # on the exact sections: their searches end at once); measured on the hemisphere and the soapbox
 DST_COST = 0.65
@@ -134,11 +137,11 @@ class OcctSide:
 
 
 def _occt_side(
-    part: LoadedPart, baselines: Sequence[str], parallel: bool
-) -> Generator[MeshInput, None, OcctSide]:
+    part: LoadedPart, baselines: Sequence[str], parallel: bool, exact: bool = True
+) -> Generator[MeshInput, None, OcctSide | None]:
     """The conventional baseline meshes, each yielded as soon as it is made, the coarsest (quickest)
     first: in a helper, the report measures them while OCCT makes the finer ones. Returns the part's
-    exact x/y extent and its exact volume."""
+    exact x/y extent and its exact volume (``exact``; else None)."""
     for name in sorted(baselines, key=lambda n: -BASELINE_PRESETS[n].linear):
         preset = BASELINE_PRESETS[name]
         t = time.perf_counter()
@@ -152,12 +155,18 @@ def _occt_side(
             f"OCCT BRepMesh, linear {preset.linear} mm, angular {preset.angular} rad: {preset.source}"
             + ("" if parallel else " (timed on one thread)"),
         )
-    return OcctSide(xy_box(part), part.volume_mm3)
+    return _exact_extent(part) if exact else None
 
 
-def _start_occt_side(tasks: TaskGroup, part: LoadedPart, baselines: Sequence[str], nice: int = 0) -> Task:
+def _exact_extent(part: LoadedPart) -> OcctSide:
+    return OcctSide(xy_box(part), part.volume_mm3)  # the box: ~0.5 s of OCCT on the soapbox
+
+
+def _start_occt_side(
+    tasks: TaskGroup, part: LoadedPart, baselines: Sequence[str], nice: int = 0, exact: bool = True
+) -> Task:
     """``_occt_side`` as a task of ``tasks`` (OCCT on one thread in a forked helper)."""
-    return tasks.submit(_occt_side, part, baselines, not tasks.forked, nice=nice)
+    return tasks.submit(_occt_side, part, baselines, not tasks.forked, exact, nice=nice)
 
 
 @dataclass
@@ -417,7 +426,7 @@ def slice_and_report(
         # Inline (nothing to overlap): after the build.
         side = reference = None
         if tasks.forked:
-            side = _start_occt_side(tasks, part, baselines, nice=OCCT_SIDE_NICE)
+            side = _start_occt_side(tasks, part, baselines, nice=OCCT_SIDE_NICE, exact=False)
             if tasks.limit >= 2:
                 reference = tasks.submit(
                     _exact_reference, part, params, None, False, True, nice=BACKGROUND_NICE
@@ -425,8 +434,13 @@ def slice_and_report(
         mesh = slice_part(part, params, progress=lambda s, f: report(s, 0.5 * f), t0=t0)
         if on_mesh is not None:
             on_mesh(mesh)
+        # the part's exact box and volume here, while the helpers work: the niced OCCT helper would
+        # do them last, starved by the measuring (at nice 0) it holds up
+        extent = None
         if side is None:
             side = _start_occt_side(tasks, part, baselines)
+        else:
+            extent = _exact_extent(part)
         out = _build_report(
             part,
             params,
@@ -438,6 +452,7 @@ def slice_and_report(
             side,
             lambda s, f: report(s, 0.5 + 0.5 * f),
             reference,
+            extent,
         )
     return mesh, out
 
@@ -453,9 +468,11 @@ def _build_report(
     side: Task,
     report: Progress,
     reference: Task | None = None,
+    extent: OcctSide | None = None,
 ) -> Report:
-    """The report, ``side`` being ``_occt_side``'s task and ``reference`` (if started)
-    ``_exact_reference``'s. OCCT's own work (the baselines, the exact box and volume) holds the GIL:
+    """The report, ``side`` being ``_occt_side``'s task, ``reference`` (if started)
+    ``_exact_reference``'s and ``extent`` the part's exact box and volume where the side does not
+    compute them. OCCT's own work (the baselines, the exact box and volume) holds the GIL:
     it runs in a child process beside the exact reference, on one thread there (OCCT's thread pool
     stays behind in this process when it forks). The baselines come one by one, each measured as
     soon as it is there while OCCT makes the next (the coarse presets first: their measuring
@@ -503,10 +520,11 @@ def _build_report(
     measuring: dict[int, list[tuple[int, Task, int]]] = {}  # per mesh: (first plane, task, piece)
 
     # Each mesh's plane ranges ("pieces", each a sixth of a helper's share or less) wait here, largest
-    # first, until a helper or this process takes them: a free helper gets a share of about equal work
-    # with every other free one and this process (each share at least MIN_MEASURE_CHUNK: a fork costs
-    # ~25 ms of CPU), and this process measures the rest piece by piece, handing out again as helpers
-    # free up and meshes arrive. So no core waits for a share handed out before the last mesh came.
+    # first, until a helper or this process takes them. While OCCT still makes baselines, the free
+    # helpers take every waiting piece. Once it is done, a free helper gets a share of about equal
+    # work with every other free one and this process (at least MIN_MEASURE_CHUNK: a fork costs
+    # ~25 ms of CPU), and this process measures its share piece by piece, handing out again as
+    # helpers free up. So no core waits for a share handed out before the last mesh came.
     pending: list[tuple[float, MeshInput, int, int]] = []
     placed: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # once per mesh; the helpers share it
 
@@ -538,40 +556,57 @@ def _build_report(
             n_planes,
             workers,
         )
-        task = tasks.submit(_measure_pieces, *args) if forked else Task(_measure_pieces, args, False)
+        if forked:
+            task = tasks.submit(_measure_pieces, *args)
+        else:
+            task = Task(_measure_pieces, args, False)
         for k, (_, m, j0, _) in enumerate(share):
             measuring.setdefault(id(m), []).append((j0, task, k))
 
-    def hand_out() -> None:
-        if not tasks.forked:
+    def hand_out(here: bool) -> None:
+        # ``here``: this process measures too. A free helper takes, largest first, pieces worth half
+        # its part of the waiting work (never less than MIN_MEASURE_CHUNK: a fork costs ~25 ms of
+        # CPU); the rest waits for whoever frees up next, so the work ends at about the same time
+        # everywhere. The last of it, when this process does not measure yet, goes out whole.
+        if not tasks.forked or not pending:
             return
+        free = tasks.free()
         work = sum(p[0] for p in pending)
-        helpers = min(tasks.free(), int(work // MIN_MEASURE_CHUNK))
+        helpers = min(free, int(work // MIN_MEASURE_CHUNK)) if here else free
         if helpers < 1:
             return
-        shares = _pack(pending, helpers + 1)  # the free helpers' and this process's
-        pending[:] = sorted(shares.pop(), key=lambda p: -p[0]) if len(shares) > helpers else []
+        if not here and work < LAST_OUT_CHUNKS * MIN_MEASURE_CHUNK:
+            shares = _pack(pending, helpers)
+            pending.clear()
+        else:
+            target = max(MIN_MEASURE_CHUNK, work / (2 * (helpers + here)))
+            shares = []
+            for _ in range(helpers):
+                share: list[tuple[float, MeshInput, int, int]] = []
+                while pending and sum(p[0] for p in share) < target:
+                    share.append(pending.pop(0))
+                if share:
+                    shares.append(share)
         for share in shares:
             measure(share, True)
 
     todo.extend(side.items_ready())  # the baselines OCCT has made already
     add(todo)
-    hand_out()
     report("conventional meshes", 0.5)
     while True:
         if arrived := side.items_ready():  # the others as OCCT makes them
             todo.extend(arrived)
             add(arrived)
-            hand_out()
-        elif pending:  # the next piece here, after handing out to helpers that have freed up
-            hand_out()
-            if pending:
-                measure([pending.pop(0)], False)
-        elif side.done():
+        # This process measures only once OCCT is done: until then its core is OCCT's or a helper's.
+        here = side.done()
+        hand_out(here)
+        if pending and here:
+            measure([pending.pop(0)], False)
+        elif here:
             break
         else:
             tasks.wait_any()  # a baseline, or a helper done
-    occt = _occt_result(side)
+    occt = _occt_result(side) or extent
     rank = {name: i for i, name in enumerate(baselines)}  # the baselines in the order asked for
     todo.sort(key=lambda m: rank[m.name] if m.kind == "baseline" else -1)
     report("measuring meshes", 0.7)
