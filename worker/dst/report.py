@@ -519,11 +519,9 @@ def _build_report(
     measuring: dict[int, list[tuple[int, Task, int]]] = {}  # per mesh: (first plane, task, piece)
 
     # Each mesh's plane ranges ("pieces", each a sixth of a helper's share or less) wait here, largest
-    # first, until a helper or this process takes them. While OCCT still makes baselines, the free
-    # helpers take every waiting piece. Once it is done, a free helper gets a share of about equal
-    # work with every other free one and this process (at least MIN_MEASURE_CHUNK: a fork costs
-    # ~25 ms of CPU), and this process measures its share piece by piece, handing out again as
-    # helpers free up. So no core waits for a share handed out before the last mesh came.
+    # first, until whoever is free takes them (``hand_out``): a free helper some, and once OCCT has
+    # made every baseline, this process one by one. So no core waits for a share handed out before
+    # the last mesh came, and none finishes long before the others.
     pending: list[tuple[float, MeshInput, int, int]] = []
     placed: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # once per mesh; the helpers share it
 
