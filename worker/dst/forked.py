@@ -337,9 +337,10 @@ class TaskGroup:
         return self.limit - len(self._running)
 
     def wait_any(self) -> None:
-        """Block until a running child sends something (a value or its outcome); at once if none runs."""
+        """Block until a running child sends something (a value or its outcome); at once if none runs
+        or one has sent values no one has taken yet (``free`` reads what has come)."""
         running = [t for t in self._running if not t.done()]
-        if not running:
+        if not running or any(t._items for t in running):
             return
         ready, _, _ = select.select([t.fileno for t in running], [], [])
         for t in running:

@@ -427,9 +427,7 @@ def slice_and_report(
         if tasks.forked:
             side = _start_occt_side(tasks, part, baselines, nice=BACKGROUND_NICE, exact=False)
             if tasks.limit >= 2:
-                reference = tasks.submit(
-                    _exact_reference, part, params, None, False, True, nice=BACKGROUND_NICE
-                )
+                reference = tasks.submit(_exact_reference, part, params, None, False, nice=BACKGROUND_NICE)
         mesh = slice_part(part, params, progress=lambda s, f: report(s, 0.5 * f), t0=t0)
         if on_mesh is not None:
             on_mesh(mesh)
@@ -580,8 +578,10 @@ def _build_report(
             shares = []
             for _ in range(helpers):
                 share: list[tuple[float, MeshInput, int, int]] = []
-                while pending and sum(p[0] for p in share) < target:
+                got = 0.0
+                while pending and got < target:
                     share.append(pending.pop(0))
+                    got += share[-1][0]
                 if share:
                     shares.append(share)
         for share in shares:
@@ -601,7 +601,7 @@ def _build_report(
             measure([pending.pop(0)], False)
         elif here:
             break
-        else:
+        elif not side.done():  # (hand_out may have read its end)
             tasks.wait_any()  # a baseline, or a helper done
     occt = _occt_result(side) or extent
     rank = {name: i for i, name in enumerate(baselines)}  # the baselines in the order asked for

@@ -174,6 +174,31 @@ def test_the_values_a_running_task_has_sent_are_taken_without_waiting_for_more()
         t.result()
 
 
+@needs_fork
+def test_waiting_for_news_does_not_wait_for_values_already_read():
+    """``free`` reads what the children have sent; ``wait_any`` then returns at once for values no
+    one has taken yet, rather than waiting for the child's next message (here: 20 s away)."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp, TaskGroup(forked=True) as tasks:
+        t = tasks.submit(_two_then_wait, os.path.join(tmp, "never"))
+        time.sleep(0.5)  # both values sent; the child waits for the marker
+        tasks.free()  # reads them
+
+        def waited(*_):
+            raise TimeoutError("wait_any waited for news it already had")
+
+        before = signal.signal(signal.SIGALRM, waited)
+        signal.alarm(5)
+        try:
+            tasks.wait_any()
+        finally:
+            signal.alarm(0)
+            signal.signal(signal.SIGALRM, before)
+        assert t.items_ready() == ["first", "second"]
+        t.kill()
+
+
 def _wrapped_stream(fail: str):
     return _stream_then(fail)  # not a generator function: returns a generator
 
