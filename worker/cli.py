@@ -221,13 +221,9 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
 
 def _write_report(args: argparse.Namespace, report, json_path: str) -> None:
-    from worker.dst.render import write_html, write_json, write_plot  # noqa: PLC0415
+    from worker.dst.render import write_files  # noqa: PLC0415
 
-    write_json(report, json_path)
-    if args.html:
-        write_html(report, args.html)
-    if args.plot:
-        write_plot(report, args.plot)
+    write_files(report, json_path=json_path, html_path=args.html, plots=(args.plot,) if args.plot else ())
     if not args.quiet:
         print(_summary_table(report), file=sys.stderr)
         print(f"wrote {', '.join(p for p in (json_path, args.html, args.plot) if p)}", file=sys.stderr)
@@ -361,7 +357,7 @@ def _worker_argv(concurrency: int, queue: str) -> list[str]:
 
     return [
         "worker",
-        "--pool=threads",  # each job runs in its own spawned process; the pool only supervises
+        "--pool=threads",  # each job runs in a process of its own (sandbox); the pool only supervises
         f"--concurrency={concurrency}",
         f"--queues={queue}",
         f"--hostname=dst-{os.getpid()}@{socket.gethostname()}",

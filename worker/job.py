@@ -26,7 +26,7 @@ def run_job(
     """
     from worker.dst.baselines import parse_baselines
     from worker.dst.params import SliceParams
-    from worker.dst.render import write_html, write_json, write_plot
+    from worker.dst.render import write_files
     from worker.dst.report import slice_and_report
 
     values = dict(params)
@@ -62,11 +62,13 @@ def run_job(
         processes=report_processes,
         on_mesh=write_mesh,
     )
-    write_json(report, job_dir / "report.json")
     progress("plots", 0.96)
-    write_html(report, job_dir / "report.html")
-    write_plot(report, job_dir / "plot.svg")
-    write_plot(report, job_dir / "plot.png")
+    write_files(
+        report,
+        json_path=job_dir / "report.json",
+        html_path=job_dir / "report.html",
+        plots=(job_dir / "plot.svg", job_dir / "plot.png"),
+    )
     dst = report.meshes[0].summary
     result.update(
         {

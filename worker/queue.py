@@ -83,6 +83,9 @@ def _housekeeping(concurrency: int) -> None:
 
 @worker_ready.connect
 def _on_ready(sender=None, **_kw) -> None:
+    from worker.sandbox import warm_up
+
+    warm_up()  # the jobs' fork server imports OCCT while the worker waits for its first job
     concurrency = getattr(getattr(sender, "controller", None), "concurrency", None) or 1
     threading.Thread(
         target=_housekeeping, args=(int(concurrency),), name="dst-housekeeping", daemon=True

@@ -2,10 +2,18 @@
 
 OCCT holds the GIL and cannot be interrupted by a signal or a thread: the only reliable stop is to
 kill the process it runs in. The supervisor (a thread of the Celery worker) claims the job, starts a
-fresh *spawned* child (never a fork of a process that ran OCCT), relays its progress to the job
-store, beats the job's heartbeat, and kills the child on timeout or cancellation. A child that dies
-(segfault, OOM kill) fails the job with ``worker_crashed``; the worker carries on. The job's
-report may fork helpers of its own (``worker.dst.forked``); they die with the job's process.
+child for it, relays its progress to the job store, beats the job's heartbeat, and kills the child on
+timeout or cancellation. A child that dies (segfault, OOM kill) fails the job with
+``worker_crashed``; the worker carries on. The job's report may fork helpers of its own
+(``worker.dst.forked``); they die with the job's process.
+
+On Linux each child is forked from a fork server (``multiprocessing``'s ``forkserver``) that has
+imported what a job needs (``PRELOAD``: OCCT, scipy, matplotlib) and done nothing else: a job starts
+in ~0.05 s instead of the 3-4 s a fresh interpreter spends on those imports, and every job still
+starts from the same untouched state, never a fork of a process that ran OCCT (whose thread pool
+does not survive a fork). The server costs its worker ~400 MB of memory while it lives; it exits
+with the worker, and the jobs' processes with it. Elsewhere each child is a fresh *spawned*
+interpreter.
 """
 
 from __future__ import annotations
@@ -14,6 +22,7 @@ import multiprocessing as mp
 import os
 import resource
 import signal
+import sys
 import time
 import traceback
 from pathlib import Path
@@ -25,6 +34,36 @@ from worker.storage import ArtifactStore
 from worker.store import JobStore, this_worker_name
 
 _PROGRESS_EVERY_S = 0.25
+# Imported once by the fork server, before any job: every module a job imports (matplotlib's
+# backends are imported when a figure is first saved), this one (the child's entry point: its job
+# store imports SQLAlchemy) and the `dst` command's (a child runs its parent's main script again).
+PRELOAD = (
+    "worker.cli",
+    "worker.sandbox",
+    "worker.job",
+    "worker.dst.pipeline",
+    "worker.dst.report",
+    "worker.dst.render",
+    "matplotlib.backends.backend_agg",
+    "matplotlib.backends.backend_svg",
+)
+
+
+def _context():
+    """Where jobs' processes come from: the preloaded fork server on Linux, else fresh interpreters."""
+    if not sys.platform.startswith("linux"):
+        return mp.get_context("spawn")
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload(list(PRELOAD))
+    return ctx
+
+
+def warm_up() -> None:
+    """Start the fork server now (its imports take seconds), not when the first job comes."""
+    if _context().get_start_method() == "forkserver":
+        from multiprocessing import forkserver
+
+        forkserver.ensure_running()
 
 
 def _child(
@@ -89,7 +128,7 @@ def run_sandboxed(job_id: str, store: JobStore, artifacts: ArtifactStore, settin
         return _finish(
             store, artifacts, job_id, "failed", "input_missing", f"the uploaded file is gone: {exc}"
         )
-    ctx = mp.get_context("spawn")
+    ctx = _context()
     parent, child = ctx.Pipe(duplex=False)
     proc = ctx.Process(
         target=_child,

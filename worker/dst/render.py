@@ -12,6 +12,7 @@ import matplotlib
 matplotlib.use("Agg")  # no display; must precede pyplot
 import matplotlib.pyplot as plt  # noqa: E402
 
+from worker.dst.forked import TaskGroup  # noqa: E402
 from worker.dst.report import MeshReport, Report  # noqa: E402
 from worker.dst.stl_io import write_atomic  # noqa: E402
 
@@ -20,7 +21,10 @@ _FLOOR = 1e-7  # log axes: values below this (DST's float32 rounding) are drawn 
 
 def figure(report: Report):
     """A matplotlib figure: chord_dev (mm) and perimeter_err against z for every mesh."""
-    fig, axes = plt.subplots(1, 2, figsize=(11, 5.5), sharey=True, constrained_layout=True)
+    # fixed margins (room for the tick labels, axis labels and title at this size): a constrained
+    # layout made each drawing ~40% slower
+    fig, axes = plt.subplots(1, 2, figsize=(11, 5.5), sharey=True)
+    fig.subplots_adjust(left=0.065, right=0.985, bottom=0.1, top=0.91, wspace=0.05)
     for m in report.meshes:
         z = [layer.z for layer in m.layers]
         style = {"linewidth": 2.2, "color": "black"} if m.kind == "dst" else {"linewidth": 1.1}
@@ -40,14 +44,36 @@ def figure(report: Report):
     return fig
 
 
-def write_plot(report: Report, path: str | os.PathLike[str]) -> None:
-    """Write the plot as SVG or PNG (by the file's extension), atomically."""
-    path = os.fspath(path)
-    fmt = os.path.splitext(path)[1].lower().lstrip(".")
+def write_files(
+    report: Report,
+    *,
+    json_path: str | os.PathLike[str] | None = None,
+    html_path: str | os.PathLike[str] | None = None,
+    plots: tuple[str | os.PathLike[str], ...] = (),
+) -> None:
+    """Write the report as JSON, its HTML page and its plots (SVG or PNG by each file's extension),
+    each atomically; the plot is drawn once per format (the page embeds the SVG one): a drawing
+    takes ~0.3-0.5 s."""
+    fmts = [_plot_format(p) for p in plots]  # a bad name fails before anything is written
+    if json_path is not None:
+        write_json(report, json_path)
+    needed = sorted(set(fmts) | ({"svg"} if html_path is not None else set()))
+    # two formats: the second drawn in a forked helper meanwhile (matplotlib holds the GIL)
+    with TaskGroup(forked=len(needed) > 1, limit=1) as tasks:
+        later = {fmt: tasks.submit(plot_bytes, report, fmt) for fmt in needed[1:]}
+        drawn = {fmt: plot_bytes(report, fmt) for fmt in needed[:1]}
+        drawn.update({fmt: task.result() for fmt, task in later.items()})
+    if html_path is not None:
+        write_atomic(html_path, render_html(report, drawn["svg"]).encode("utf-8"))
+    for path, fmt in zip(plots, fmts, strict=True):
+        write_atomic(path, drawn[fmt])
+
+
+def _plot_format(path: str | os.PathLike[str]) -> str:
+    fmt = os.path.splitext(os.fspath(path))[1].lower().lstrip(".")
     if fmt not in {"svg", "png"}:
-        raise ValueError(f"plot format must be .svg or .png, got {path!r}")
-    data = plot_bytes(report, fmt)
-    write_atomic(path, data)
+        raise ValueError(f"plot format must be .svg or .png, got {os.fspath(path)!r}")
+    return fmt
 
 
 def plot_bytes(report: Report, fmt: str) -> bytes:
@@ -58,10 +84,10 @@ def plot_bytes(report: Report, fmt: str) -> bytes:
     return buf.getvalue()
 
 
-def render_html(report: Report) -> str:
-    """One self-contained page (inline SVG, no external assets)."""
-    svg = plot_bytes(report, "svg").decode("utf-8")
-    svg = svg[svg.index("<svg") :]
+def render_html(report: Report, svg: bytes) -> str:
+    """One self-contained page (no external assets) with ``svg``, the plot drawn as SVG, inline."""
+    svg_text = svg.decode("utf-8")
+    svg_text = svg_text[svg_text.index("<svg") :]
     e = html.escape
     rows = "\n".join(_row(m) for m in report.meshes)
     warnings = "".join(f"<li>{e(w)}</li>" for w in report.warnings) or "<li>none</li>"
@@ -87,7 +113,7 @@ Part height {report.input.height_mm:.4f} mm, exact volume {report.input.volume_m
 </table>
 <h2>Warnings</h2><ul>{warnings}</ul>
 <h2>Per layer</h2>
-{svg}
+{svg_text}
 <p class="small">Reference: {e(report.reference.method)}. Distances: {e(report.reference.distances)}.
 Resolution {report.reference.resolution_mm:g} mm. Report format version {e(report.version)}.</p>
 </body></html>
@@ -115,10 +141,6 @@ def _row(m: MeshReport) -> str:
         _fmt(m.seconds, ".2f"),
     ]
     return "<tr>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>"
-
-
-def write_html(report: Report, path: str | os.PathLike[str]) -> None:
-    write_atomic(path, render_html(report).encode("utf-8"))
 
 
 def write_json(report: Report, path: str | os.PathLike[str]) -> None:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 
 import numpy as np
 import pytest
@@ -122,6 +123,43 @@ def test_report_json_round_trips(hemisphere):
     assert data["version"] == "1.1"
     assert len(data["meshes"][0]["layers"]) == len(data["planes"])
     assert data["meshes"][0]["stl_bytes"] == 84 + 50 * data["meshes"][0]["triangles"]
+
+
+@pytest.mark.parametrize("forked", [True, False])
+def test_report_files_draw_each_plot_once_and_the_page_embeds_the_svg(
+    hemisphere, tmp_path, monkeypatch, forked
+):
+    from worker.dst import render
+    from worker.dst.forked import TaskGroup
+
+    _, _, report, _ = hemisphere
+    log = tmp_path / "drawn.txt"
+    real = render.plot_bytes
+
+    def counted(rep, fmt):
+        with open(log, "a") as fh:  # a file: a forked helper's drawing counts too
+            fh.write(f"{fmt} {os.getpid()}\n")
+        return real(rep, fmt)
+
+    monkeypatch.setattr(render, "plot_bytes", counted)
+    monkeypatch.setattr(
+        render, "TaskGroup", lambda **kw: TaskGroup(**{**kw, "forked": kw["forked"] and forked})
+    )
+    paths = {n: tmp_path / n for n in ("r.json", "r.html", "p.svg", "p.png")}
+    render.write_files(
+        report, json_path=paths["r.json"], html_path=paths["r.html"], plots=(paths["p.svg"], paths["p.png"])
+    )
+    assert Report.model_validate_json(paths["r.json"].read_text()) == report
+    svg = paths["p.svg"].read_text()
+    page = paths["r.html"].read_text()
+    assert svg[svg.index("<svg") :] in page and page.count("<svg") == 1
+    assert paths["p.png"].read_bytes().startswith(b"\x89PNG\r\n\x1a\n")
+    drawn = [line.split() for line in log.read_text().splitlines()]
+    assert sorted(fmt for fmt, _ in drawn) == ["png", "svg"]  # each once: the page reuses the SVG
+    assert len({pid for _, pid in drawn}) == (2 if forked else 1)
+    with pytest.raises(ValueError, match=".svg or .png"):
+        render.write_files(report, json_path=tmp_path / "x.json", plots=(tmp_path / "p.gif",))
+    assert not (tmp_path / "x.json").exists()  # refused before anything was written
 
 
 def test_missing_layers_are_reported_not_crashed(hemisphere, tmp_path):
