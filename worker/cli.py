@@ -405,6 +405,13 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     for job_id, action in recover(store(), settings, enqueue):
         print(f"dst: job {job_id} was interrupted: {action}", file=sys.stderr)
 
+    # uvicorn shuts down gracefully on SIGTERM, then raises the signal again with the handler it
+    # found: by default that ends this process at once, leaving the worker running on its own. This
+    # handler turns it into an exception instead, so the worker is stopped below.
+    def _terminated(signum, frame):
+        raise SystemExit(0)
+
+    signal.signal(signal.SIGTERM, _terminated)
     try:
         uvicorn.run(
             "app.main:app", host=args.host, port=args.port, log_level="info", timeout_graceful_shutdown=5

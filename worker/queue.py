@@ -19,6 +19,14 @@ from worker.store import JobStore, this_worker_name
 
 log = logging.getLogger("dst.worker")
 settings = get_settings()
+# How often a worker looks for new jobs in the embedded SQLite broker (kombu's default, 1 s, kept a
+# job up to a second in the queue). Set on the transport class: kombu's SQLAlchemy transport hands
+# its transport options to ``create_engine``, which refuses a ``polling_interval``.
+EMBEDDED_POLL_S = 0.1
+if settings.effective_broker_url.startswith("sqla+"):
+    from kombu.transport import sqlalchemy as _sqla_transport
+
+    _sqla_transport.Transport.polling_interval = EMBEDDED_POLL_S
 
 app = Celery("dst")
 app.conf.update(

@@ -272,3 +272,39 @@ def test_artifacts_on_s3(service_factory, parts, s3_bucket, tmp_path):
         c.delete(job["id"])
         fs.invalidate_cache()
         assert not fs.exists(f"dst-test/artifacts/{job['id']}")
+
+
+def _children(pid: int) -> list[int]:
+    """Live processes whose parent is ``pid`` (Linux /proc)."""
+    out = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as fh:
+                    fields = fh.read().rsplit(")", 1)[1].split()
+            except OSError:  # gone meanwhile
+                continue
+            if int(fields[1]) == pid and fields[0] != "Z":
+                out.append(int(entry))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def test_sigterm_to_serve_stops_its_worker_too(service_factory):
+    svc = service_factory().start()
+    worker = _children(svc.proc.pid)
+    assert worker, "dst serve started no worker process"
+    server = [p for w in worker for p in _children(w)]  # the worker's fork server for its jobs
+    svc.proc.send_signal(signal.SIGTERM)  # to `dst serve` alone, as `kill PID` sends it
+    assert svc.proc.wait(60) == 0
+    deadline = time.monotonic() + 30
+    while any(_alive(p) for p in worker + server) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not [p for p in worker + server if _alive(p)], "processes of the service outlived it"
