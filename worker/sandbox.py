@@ -9,7 +9,7 @@ timeout or cancellation. A child that dies (segfault, OOM kill) fails the job wi
 
 On Linux each child is forked from a fork server (``multiprocessing``'s ``forkserver``) that has
 imported what a job needs (``PRELOAD``: OCCT, scipy, matplotlib) and done nothing else: a job starts
-in ~0.05 s instead of the 3-4 s a fresh interpreter spends on those imports, and every job still
+in ~0.02 s instead of the 3-4 s a fresh interpreter spends on those imports, and every job still
 starts from the same untouched state, never a fork of a process that ran OCCT (whose thread pool
 does not survive a fork). The server costs its worker ~400 MB of memory while it lives; it exits
 with the worker, and the jobs' processes with it. Elsewhere each child is a fresh *spawned*
