@@ -185,3 +185,12 @@ def circle_sag(radius, length):
 
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+
+def process_dead(pid: int) -> bool:
+    """The process is gone or a zombie (Linux /proc)."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            return any(line.startswith("State:") and "Z" in line.split()[1] for line in f)
+    except FileNotFoundError:
+        return True

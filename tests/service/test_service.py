@@ -17,7 +17,7 @@ import pytest
 import trimesh
 
 from app.client import DstClient, JobFailed
-from tests.conftest import build_part, write_step
+from tests.conftest import build_part, process_dead, write_step
 from worker.dst.report import Report
 
 pytestmark = [pytest.mark.service, pytest.mark.slow]
@@ -281,20 +281,12 @@ def _children(pid: int) -> list[int]:
         if entry.isdigit():
             try:
                 with open(f"/proc/{entry}/stat") as fh:
-                    fields = fh.read().rsplit(")", 1)[1].split()
+                    ppid = int(fh.read().rsplit(")", 1)[1].split()[1])
             except OSError:  # gone meanwhile
                 continue
-            if int(fields[1]) == pid and fields[0] != "Z":
+            if ppid == pid and not process_dead(int(entry)):
                 out.append(int(entry))
     return out
-
-
-def _alive(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat") as fh:
-            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
-    except OSError:
-        return False
 
 
 def test_sigterm_to_serve_stops_its_worker_too(service_factory):
@@ -305,6 +297,6 @@ def test_sigterm_to_serve_stops_its_worker_too(service_factory):
     svc.proc.send_signal(signal.SIGTERM)  # to `dst serve` alone, as `kill PID` sends it
     assert svc.proc.wait(60) == 0
     deadline = time.monotonic() + 30
-    while any(_alive(p) for p in worker + server) and time.monotonic() < deadline:
+    while not all(process_dead(p) for p in worker + server) and time.monotonic() < deadline:
         time.sleep(0.2)
-    assert not [p for p in worker + server if _alive(p)], "processes of the service outlived it"
+    assert all(process_dead(p) for p in worker + server), "processes of the service outlived it"

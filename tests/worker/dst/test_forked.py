@@ -9,6 +9,7 @@ import time
 import numpy as np
 import pytest
 
+from tests.conftest import process_dead
 from worker.dst.errors import TessellationError
 from worker.dst.forked import TaskDied, TaskGroup, fork_available
 
@@ -233,14 +234,6 @@ def test_inline_tasks_run_in_this_process():
     assert pid == os.getpid()
 
 
-def _dead(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/status") as f:
-            return any(line.startswith("State:") and "Z" in line.split()[1] for line in f)
-    except FileNotFoundError:
-        return True
-
-
 @needs_fork
 def test_helpers_die_with_a_killed_job_process():
     """A job process killed for its timeout takes its helpers with it (no orphans running on)."""
@@ -259,12 +252,12 @@ def test_helpers_die_with_a_killed_job_process():
     job = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
     try:
         helper = int(job.stdout.readline())
-        assert not _dead(helper)
+        assert not process_dead(helper)
         job.kill()
         job.wait(10)
         deadline = time.monotonic() + 10
-        while not _dead(helper) and time.monotonic() < deadline:
+        while not process_dead(helper) and time.monotonic() < deadline:
             time.sleep(0.05)
-        assert _dead(helper)
+        assert process_dead(helper)
     finally:
         job.kill()
