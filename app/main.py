@@ -270,7 +270,8 @@ def _submit(
             finished_at=time.time(),
         )
         raise ApiError(503, "broker_unavailable", f"the job queue is unreachable: {exc}") from None
-    return store.get(job.id) or job, False
+    # the job as submitted: read again, it could already be a worker's (``running``) or not, by a race
+    return job, False
 
 
 JobId = Annotated[str, PathParam(max_length=64, description="Job id (32 hex digits).")]
