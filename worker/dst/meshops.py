@@ -28,8 +28,14 @@ def edge_defects(tris: np.ndarray, n_vertices: int) -> tuple[int, int]:
 def open_edges(tris: np.ndarray, n_vertices: int) -> np.ndarray:
     """The directed edges (k, 2) whose reverse is missing: the borders of a mesh's holes."""
     e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
-    key = e[:, 0] * n_vertices + e[:, 1]
-    return e[~np.isin(key, e[:, 1] * n_vertices + e[:, 0])]
+    if not len(e):
+        return e
+    # one sort and a binary search (np.isin sorts both sets together, stably: ~3x slower here,
+    # where every face of a topology mesh is checked)
+    key = np.sort(e[:, 0] * n_vertices + e[:, 1])
+    rkey = e[:, 1] * n_vertices + e[:, 0]
+    found = key[np.minimum(np.searchsorted(key, rkey), len(key) - 1)] == rkey
+    return e[~found]
 
 
 def repeated_corner(tris: np.ndarray) -> np.ndarray:

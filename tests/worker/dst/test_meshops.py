@@ -1,6 +1,6 @@
 import numpy as np
 
-from worker.dst.meshops import edge_defects, signed_volume
+from worker.dst.meshops import edge_defects, open_edges, signed_volume
 
 # a unit right tetrahedron, outward oriented
 XYZ = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
@@ -28,3 +28,13 @@ def test_each_repeated_edge_counts_once_however_often_it_repeats():
     assert edge_defects(np.concatenate([TET, TET[:1]]), 4) == (0, 3)
     assert edge_defects(np.concatenate([TET, TET[:1], TET[:1]]), 4) == (0, 3)
     assert edge_defects(np.empty((0, 3), dtype=np.int64), 0) == (0, 0)
+
+
+def test_open_edges_are_the_directed_edges_whose_reverse_is_missing():
+    assert open_edges(TET, 4).shape == (0, 2)
+    # without its first face, the three edges around the hole, as the neighbours hold them
+    assert sorted(map(tuple, open_edges(TET[1:], 4).tolist())) == [(0, 1), (1, 2), (2, 0)]
+    # a repeated edge is not open while its reverse is there; a lone triangle is all border
+    assert open_edges(np.concatenate([TET, TET[:1]]), 4).shape == (0, 2)
+    assert sorted(map(tuple, open_edges(TET[:1], 4).tolist())) == [(0, 2), (1, 0), (2, 1)]
+    assert open_edges(np.empty((0, 3), dtype=np.int64), 0).shape == (0, 2)
