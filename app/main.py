@@ -270,7 +270,7 @@ def _submit(
             finished_at=time.time(),
         )
         raise ApiError(503, "broker_unavailable", f"the job queue is unreachable: {exc}") from None
-    # the job as submitted: read again, it could already be a worker's (``running``) or not, by a race
+    # the job as submitted, not read back: a worker may already have claimed it (a race)
     return job, False
 
 
