@@ -29,7 +29,7 @@ from app import schemas as S
 from app.page import INDEX_HTML
 from worker.dst.baselines import parse_baselines
 from worker.dst.errors import InvalidParameters
-from worker.dst.params import SliceParams
+from worker.dst.params import ROTATION_FIELDS, SliceParams
 from worker.dst.sniff import SNIFF_BYTES, sniff_step
 from worker.settings import Settings, get_settings
 from worker.storage import ARTIFACTS, ArtifactStore, make_artifact_store
@@ -186,18 +186,9 @@ def sanitise_name(name: str | None) -> str:
     return base[:120]
 
 
-def _parse_params(
-    layer_height, first_layer_height, mode, segment_length, chord_error, target_slicer, baselines
-) -> dict:
+def _parse_params(values: dict, baselines: str | None) -> dict:
     try:
-        p = SliceParams.parse(
-            layer_height=layer_height,
-            first_layer_height=first_layer_height,
-            mode=mode,
-            segment_length=segment_length,
-            chord_error=chord_error,
-            target_slicer=target_slicer,
-        )
+        p = SliceParams.parse(**values)
         names = parse_baselines(baselines)
     except InvalidParameters as exc:
         raise ApiError(422, "invalid_parameters", str(exc)) from None
@@ -244,7 +235,9 @@ def _submit(
 ) -> tuple[Job, bool]:
     """Create the job (or reuse one with the same inputs) and queue it. Returns (job, reused)."""
     store, artifacts = _store(request), _artifacts(request)
-    key = hashlib.sha256((sha + json.dumps(params, sort_keys=True)).encode()).hexdigest()
+    # (an unturned part's key leaves the turn out, as the keys of jobs from before it existed do)
+    keyed = {k: v for k, v in params.items() if not (k in ROTATION_FIELDS and v == 0)}
+    key = hashlib.sha256((sha + json.dumps(keyed, sort_keys=True)).encode()).hexdigest()
     try:
         old = store.find_reusable(key)
         if old is not None and (
@@ -298,6 +291,15 @@ ChordField = Annotated[
 SlicerField = Annotated[
     str | None, Form(pattern="^(cura|prusa)$", description="Ring heights as cura or prusa computes planes.")
 ]
+RotateField = Annotated[
+    float | None,
+    Form(
+        ge=-360.0,
+        le=360.0,
+        description="Degrees to turn the part about this axis before slicing (default 0): the orientation "
+        "it is printed in. Turns apply about x, then y, then z (fixed axes, right-handed).",
+    ),
+]
 BaselinesField = Annotated[
     str | None,
     Form(
@@ -319,15 +321,28 @@ class UploadForm:
         segment_length: SegField = None,
         chord_error: ChordField = None,
         target_slicer: SlicerField = None,
+        rotate_x: RotateField = None,
+        rotate_y: RotateField = None,
+        rotate_z: RotateField = None,
         baselines: BaselinesField = None,
     ):
         self.file = file
-        self.values = (layer_height, first_layer_height, mode, segment_length, chord_error, target_slicer)
+        self.values = {
+            "layer_height": layer_height,
+            "first_layer_height": first_layer_height,
+            "mode": mode,
+            "segment_length": segment_length,
+            "chord_error": chord_error,
+            "target_slicer": target_slicer,
+            "rotate_x": rotate_x,
+            "rotate_y": rotate_y,
+            "rotate_z": rotate_z,
+        }
         self.baselines = baselines
 
     def params(self, *, default_baselines: str | None = None) -> dict:
         baselines = self.baselines if self.baselines is not None else default_baselines
-        return _parse_params(*self.values, baselines)
+        return _parse_params(self.values, baselines)
 
 
 Upload = Annotated[UploadForm, Depends()]

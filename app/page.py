@@ -20,6 +20,10 @@ spec: <a href="/openapi.json">/openapi.json</a>.</p>
 <label>Target slicer</label> <select name="target_slicer"><option value="">any</option><option>cura</option><option>prusa</option></select><br>
 <label>Segment length (mm)</label> <input name="segment_length" type="number" step="any" value="0.8"><br>
 <label>Chord error (mm)</label> <input name="chord_error" type="number" step="any" value="0.025"><br>
+<label title="the orientation the part is printed in: about x, then y, then z">Turn (degrees)</label>
+x <input name="rotate_x" type="number" step="any" value="0" size="5" style="width:5em">
+y <input name="rotate_y" type="number" step="any" value="0" size="5" style="width:5em">
+z <input name="rotate_z" type="number" step="any" value="0" size="5" style="width:5em"><br>
 <label>Report baselines</label> <input name="baselines" value="occt_fast,occt_high_quality,prusaslicer" size="40"><br>
 <button>Slice</button>
 </form>

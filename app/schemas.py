@@ -34,6 +34,11 @@ class JobParams(BaseModel):
     target_slicer: TargetSlicer | None = Field(
         None, description="Ring heights as this slicer computes planes."
     )
+    rotate_x: float = Field(
+        0.0, ge=-360.0, le=360.0, description="Degrees the part is turned about x (first)."
+    )
+    rotate_y: float = Field(0.0, ge=-360.0, le=360.0, description="Then about y, degrees.")
+    rotate_z: float = Field(0.0, ge=-360.0, le=360.0, description="Then about z, degrees.")
     baselines: list[str] = Field(max_length=6, description="Conventional meshes the report compares with.")
 
 

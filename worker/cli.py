@@ -31,6 +31,29 @@ def _add_slicing_options(p: argparse.ArgumentParser) -> None:
         default=None,
         help="write ring heights exactly as this slicer computes its planes",
     )
+    for axis, when in (("x", "first"), ("y", "second"), ("z", "last")):
+        p.add_argument(
+            f"--rotate-{axis}",
+            type=float,
+            default=None,
+            metavar="DEG",
+            help=f"turn the part DEG degrees about {axis} before slicing ({when}): the orientation it is "
+            "printed in (default 0; do not turn the DST mesh about x or y in the slicer)",
+        )
+
+
+# the options above, as SliceParams and the API call them
+_SLICING_FIELDS = (
+    "layer_height",
+    "first_layer_height",
+    "mode",
+    "segment_length",
+    "chord_error",
+    "target_slicer",
+    "rotate_x",
+    "rotate_y",
+    "rotate_z",
+)
 
 
 def _add_report_options(p: argparse.ArgumentParser) -> None:
@@ -85,7 +108,8 @@ def _add_report_parser(sub: argparse._SubParsersAction) -> None:
         help="measure any mesh against the exact STEP geometry",
         description="Cut MESH (an STL, e.g. your CAD system's export) and the conventional baselines at the "
         "slicer's planes and compare every layer with the exact section of the STEP part. The mesh must "
-        "be in the STEP file's coordinates (x, y as exported; it is dropped to z = 0 like a slicer does).",
+        "be in the STEP file's coordinates (x, y as exported, turned by --rotate-* if given; it is dropped to "
+        "z = 0 like a slicer does).",
     )
     p.add_argument("input", help="STEP file (AP203, AP214, AP242)")
     p.add_argument("mesh", help="STL file to measure (binary or ASCII)")
@@ -98,14 +122,7 @@ def _add_report_parser(sub: argparse._SubParsersAction) -> None:
 def _params(args: argparse.Namespace):
     from worker.dst.params import SliceParams  # noqa: PLC0415 - keep `dst --help` fast
 
-    return SliceParams.parse(
-        layer_height=args.layer_height,
-        first_layer_height=args.first_layer_height,
-        mode=args.mode,
-        segment_length=args.segment_length,
-        chord_error=args.chord_error,
-        target_slicer=args.target_slicer,
-    )
+    return SliceParams.parse(**{name: getattr(args, name) for name in _SLICING_FIELDS})
 
 
 def _check_output(path: str | None) -> None:
@@ -301,15 +318,7 @@ def _cmd_remote(args: argparse.Namespace) -> int:
         raise _UserError(f"input file not found: {args.input}")
     for path in (args.output, args.report, args.html):
         _check_output(path)
-    params = {
-        "layer_height": args.layer_height,
-        "first_layer_height": args.first_layer_height,
-        "mode": args.mode,
-        "segment_length": args.segment_length,
-        "chord_error": args.chord_error,
-        "target_slicer": args.target_slicer,
-        "baselines": args.baselines,
-    }
+    params = {name: getattr(args, name) for name in _SLICING_FIELDS} | {"baselines": args.baselines}
     try:
         with DstClient(args.server) as c:
             job = c.submit(args.input, **params)

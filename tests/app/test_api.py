@@ -7,6 +7,7 @@ writes it, so each response can be checked without running OCCT.
 from __future__ import annotations
 
 import hashlib
+import json
 import time
 
 import pytest
@@ -83,6 +84,26 @@ def test_same_file_and_parameters_reuse_the_job(api):
     assert api.queued == [first["id"], other.json()["id"]]
 
 
+def test_the_print_orientation_is_a_job_parameter(api):
+    """A turned part is another job (another mesh); no turn, or a turn of 0, is the same job as one
+    submitted before the parameter existed (its reuse key leaves the turn out)."""
+    plain = upload(api).json()
+    assert plain["params"]["rotate_x"] == plain["params"]["rotate_y"] == plain["params"]["rotate_z"] == 0
+    zero = upload(api, rotate_x=0, rotate_y=0.0, rotate_z=-0.0)
+    assert zero.status_code == 200 and zero.json()["id"] == plain["id"]
+    turned = upload(api, rotate_y=-90)
+    assert turned.status_code == 201 and turned.json()["params"]["rotate_y"] == -90
+    legacy_key = hashlib.sha256(
+        (plain["file_sha256"] + json.dumps(_without_rotation(plain["params"]), sort_keys=True)).encode()
+    ).hexdigest()
+    assert api.store.find_reusable(legacy_key).id == plain["id"]
+    assert api.queued == [plain["id"], turned.json()["id"]]
+
+
+def _without_rotation(params: dict) -> dict:
+    return {k: v for k, v in params.items() if not k.startswith("rotate_")}
+
+
 @pytest.mark.parametrize(
     ("data", "fields", "status", "code"),
     [
@@ -92,6 +113,8 @@ def test_same_file_and_parameters_reuse_the_job(api):
         (STEP_HEAD, {"chord_error": 0.9, "segment_length": 0.5}, 422, "invalid_parameters"),
         (STEP_HEAD, {"mode": "sideways"}, 422, "invalid_parameters"),
         (STEP_HEAD, {"baselines": "occt_fast,bogus"}, 422, "invalid_parameters"),
+        (STEP_HEAD, {"rotate_x": 400}, 422, "invalid_parameters"),
+        (STEP_HEAD, {"rotate_y": "sideways"}, 422, "invalid_parameters"),
         (STEP_HEAD + b"x" * 60_000, {}, 413, "upload_too_large"),
     ],
 )

@@ -46,8 +46,11 @@ def wait_status(c: DstClient, job_id: str, statuses: tuple[str, ...], timeout: f
 def test_upload_events_mesh_report_delete(service_factory, parts, tmp_path):
     svc = service_factory().start()
     with DstClient(svc.url) as c:
-        job = c.submit(parts["hemisphere"], layer_height=0.2, target_slicer="prusa", baselines="occt_fast")
-        assert job["status"] == "queued"
+        # lying on its side, as it is to be printed: the job turns the part as `dst slice` does
+        job = c.submit(
+            parts["hemisphere"], layer_height=0.2, target_slicer="prusa", rotate_x=90, baselines="occt_fast"
+        )
+        assert job["status"] == "queued" and job["params"]["rotate_x"] == 90
         events = list(c.events(job["id"]))
         assert events[-1][0] == "end" and events[-1][1]["status"] == "succeeded"
         progress = [e[1]["progress"] for e in events]
@@ -71,6 +74,8 @@ def test_upload_events_mesh_report_delete(service_factory, parts, tmp_path):
                 "0.2",
                 "--target-slicer",
                 "prusa",
+                "--rotate-x",
+                "90",
                 "-q",
             ],
             check=True,
@@ -79,6 +84,7 @@ def test_upload_events_mesh_report_delete(service_factory, parts, tmp_path):
 
         report = Report.model_validate(c.report(job["id"]))
         assert [m.name for m in report.meshes] == ["dst", "occt_fast"]
+        assert report.params.rotate_x == 90 and report.input.bbox_max[1] == pytest.approx(0.0, abs=1e-3)
         assert report.meshes[0].summary.max_vertex_dev < 1e-5 < report.meshes[1].summary.max_vertex_dev
         html = httpx.get(svc.url + job["links"]["report_html"]).text
         assert "<svg" in html and "occt_fast" in html
@@ -94,7 +100,9 @@ def test_upload_events_mesh_report_delete(service_factory, parts, tmp_path):
         same = np.unique(np.asarray(m3.vertices, np.float32), axis=0)
         assert np.array_equal(same, np.unique(np.asarray(stl.vertices, np.float32), axis=0))
 
-        again = c.submit(parts["hemisphere"], layer_height=0.2, target_slicer="prusa", baselines="occt_fast")
+        again = c.submit(
+            parts["hemisphere"], layer_height=0.2, target_slicer="prusa", rotate_x=90, baselines="occt_fast"
+        )
         assert again["reused"] and again["id"] == job["id"]
 
         c.delete(job["id"])

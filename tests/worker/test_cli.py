@@ -30,6 +30,20 @@ def test_slice_writes_a_binary_stl_and_reports_progress(make_step, tmp_path):
     assert np.isclose(out.stat().st_size, 84 + 50 * len(mesh.faces))
 
 
+def test_slice_in_the_print_orientation_asked_for(make_step, tmp_path):
+    """A 6 mm wide, 4 mm tall cone laid on its side (90 degrees about y: its axis along x, the tip
+    towards +x) is 12 mm tall, its tip at x = 4."""
+    out = tmp_path / "side.stl"
+    res = run_dst(
+        "slice", str(make_step("cone", radius=6, height=4)), "-o", str(out), "--rotate-y", "90", "-q"
+    )
+    assert res.returncode == 0, res.stderr
+    mesh = trimesh.load(out, file_type="stl")
+    assert mesh.is_watertight
+    # (the tip and the widest line lie between planes 5.9 and 6.1: the rings there come within 0.07 mm)
+    np.testing.assert_allclose(mesh.bounds, [[0.0, -6.0, 0.0], [4.0, 6.0, 12.0]], atol=0.07)
+
+
 def test_3mf_output_by_extension(make_step, tmp_path):
     out = tmp_path / "part.3mf"
     step = make_step("cone", radius=3, height=2)
@@ -56,6 +70,7 @@ def test_ascii_output(make_step, tmp_path):
         (["--layer-height", "0"], "layer_height must be between 0.01 and 2 mm, got 0.0"),
         (["--layer-height", "50"], "layer_height must be between 0.01 and 2 mm, got 50.0"),
         (["--chord-error", "0"], "chord_error must be between 0.0001 and 1 mm, got 0.0"),
+        (["--rotate-x", "720"], "rotate_x must be between -360 and 360 degrees, got 720.0"),
     ],
 )
 def test_parameters_out_of_range_are_refused_with_the_range(make_step, tmp_path, args, expect):
@@ -102,6 +117,9 @@ def test_help_lists_the_options():
         "--segment-length",
         "--chord-error",
         "--target-slicer",
+        "--rotate-x",
+        "--rotate-y",
+        "--rotate-z",
         "--ascii",
     ):
         assert opt in res.stdout

@@ -9,12 +9,14 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from worker.dst.constants import CHORD_ERROR_RANGE_MM, LAYER_HEIGHT_RANGE_MM, SEGMENT_LENGTH_RANGE_MM
 from worker.dst.errors import InvalidParameters
 
+ROTATION_FIELDS = ("rotate_x", "rotate_y", "rotate_z")
 SlicingMode = Literal["middle", "inclusive", "exclusive"]
 TargetSlicer = Literal["cura", "prusa"]
 
 
 class SliceParams(BaseModel):
-    """What a DST job needs to know about the slicer that will cut its mesh. Lengths in mm."""
+    """What a DST job needs to know about the slicer that will cut its mesh, and the part's print
+    orientation. Lengths in mm, angles in degrees."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
@@ -50,6 +52,20 @@ class SliceParams(BaseModel):
         "(Cura: integer micrometres; PrusaSlicer: float32 of its accumulated double).",
     )
 
+    rotate_x: float = Field(
+        0.0,
+        ge=-360.0,
+        le=360.0,
+        description="Turn the part this many degrees about the x axis before slicing (first), as it is "
+        "to be printed: the DST mesh is only exact in the orientation it was made for.",
+    )
+    rotate_y: float = Field(
+        0.0, ge=-360.0, le=360.0, description="Then this many degrees about the y axis (second)."
+    )
+    rotate_z: float = Field(
+        0.0, ge=-360.0, le=360.0, description="Then this many degrees about the z axis (last)."
+    )
+
     @model_validator(mode="after")
     def _chord_below_segment(self) -> SliceParams:
         if self.chord_error >= self.segment_length:
@@ -63,6 +79,11 @@ class SliceParams(BaseModel):
     def h0(self) -> float:
         """The first-layer height actually used, mm."""
         return self.layer_height if self.first_layer_height is None else self.first_layer_height
+
+    @property
+    def rotation(self) -> tuple[float, float, float]:
+        """Degrees about the fixed x, y and z axes, applied in that order (right-handed)."""
+        return (self.rotate_x, self.rotate_y, self.rotate_z)
 
     @classmethod
     def parse(cls, **values: object) -> SliceParams:
@@ -83,7 +104,8 @@ def describe_validation_error(exc: ValidationError) -> str:
         if field is not None and err["type"] in {"greater_than_equal", "less_than_equal"}:
             lo = next((m.ge for m in field.metadata if hasattr(m, "ge")), None)
             hi = next((m.le for m in field.metadata if hasattr(m, "le")), None)
-            parts.append(f"{name} must be between {lo:g} and {hi:g} mm, got {got}")
+            unit = "degrees" if name in ROTATION_FIELDS else "mm"
+            parts.append(f"{name} must be between {lo:g} and {hi:g} {unit}, got {got}")
         elif err["type"] == "value_error":
             parts.append(str(err["msg"]).removeprefix("Value error, "))
         else:

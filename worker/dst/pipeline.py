@@ -22,7 +22,7 @@ from worker.dst.planes import PlanePlan, plan_planes
 from worker.dst.ridges import prepare_extremes
 from worker.dst.sampling import RingSampler, SamplingStats, VertexPool
 from worker.dst.sections import cut_topology
-from worker.dst.step_io import LoadedPart, heal_wires, read_step
+from worker.dst.step_io import LoadedPart, heal_wires, orient, read_step
 from worker.dst.stl_io import write_3mf, write_stl
 from worker.dst.tessellate import tessellate_solid
 from worker.dst.topomesh import build_topomesh
@@ -79,8 +79,11 @@ def slice_step(
 def slice_part(
     part: LoadedPart, params: SliceParams, *, progress: Progress | None = None, t0: float | None = None
 ) -> DstMesh:
+    """The DST mesh of ``part`` for ``params``, the part first turned by ``params.rotation`` (the
+    mesh's ``part`` is the turned one: what its report must measure against)."""
     report = progress or (lambda stage, frac: None)
     t0 = time.perf_counter() if t0 is None else t0
+    part = orient(part, params.rotation)  # the part itself if it is turned already (or not to be)
     timings: dict[str, float] = {"read": time.perf_counter() - t0}
     warnings = list(part.warnings)
 

@@ -84,6 +84,11 @@ def plot_bytes(report: Report, fmt: str) -> bytes:
     return buf.getvalue()
 
 
+def _turn(rotation: tuple[float, float, float]) -> str:
+    turns = [f"{a:g}° about {axis}" for axis, a in zip("xyz", rotation, strict=True) if a]
+    return f"\nThe part is sliced turned {', then '.join(turns)}." if turns else ""
+
+
 def render_html(report: Report, svg: bytes) -> str:
     """One self-contained page (no external assets) with ``svg``, the plot drawn as SVG, inline."""
     svg_text = svg.decode("utf-8")
@@ -103,7 +108,7 @@ td {{ text-align: right; }} td:first-child {{ text-align: left; font-weight: 600
 </style></head><body>
 <h1>Deviation report: {e(report.input.file)}</h1>
 <p>{len(report.planes)} layers, layer height {p.layer_height} mm, first layer {p.h0} mm, mode {e(p.mode)};
-DST segment length {p.segment_length} mm, chord error {p.chord_error} mm.
+DST segment length {p.segment_length} mm, chord error {p.chord_error} mm.{_turn(p.rotation)}
 Part height {report.input.height_mm:.4f} mm, exact volume {report.input.volume_mm3:.2f} mm³.</p>
 <table>
 <tr><th>mesh</th><th>triangles</th><th>STL MB</th><th>watertight</th><th>volume err</th>

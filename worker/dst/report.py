@@ -60,7 +60,7 @@ from worker.dst.pipeline import (
 )
 from worker.dst.planes import plan_planes
 from worker.dst.reference import ExactSections, closed_length, exact_sections
-from worker.dst.step_io import LoadedPart, read_step
+from worker.dst.step_io import LoadedPart, orient, read_step
 from worker.dst.stl_io import binary_stl_corners, merge_equal_vertices
 from worker.dst.topomesh import max_tolerance
 
@@ -377,13 +377,15 @@ def build_report(
     progress: Progress | None = None,
     processes: int | None = None,
 ) -> Report:
-    """Measure ``dst`` (if given), ``meshes`` and the ``baselines`` presets against the exact part.
+    """Measure ``dst`` (if given), ``meshes`` and the ``baselines`` presets against the exact part,
+    turned by ``params.rotation`` (``meshes`` must be in the turned part's coordinates).
 
     ``processes``: at most this many forked helper processes at a time (default: the usable CPUs;
     1 computes everything in this process, as it also does where fork is unavailable).
     """
     report = progress or (lambda stage, frac: None)
     baselines = parse_baselines(list(baselines))
+    part = orient(part, params.rotation)  # as the DST mesh was made (``dst.part`` is turned already)
     with TaskGroup(forked=processes != 1, limit=processes) as tasks:
         return _build_report(
             part,
@@ -416,7 +418,7 @@ def slice_and_report(
     baselines = parse_baselines(list(baselines))
     t0 = time.perf_counter()
     report("reading STEP", 0.0)
-    part = read_step(path)
+    part = orient(read_step(path), params.rotation)  # before the helpers fork with it
     with TaskGroup(forked=processes != 1, limit=processes) as tasks:
         # Forked, beside the build, at a lower priority (the build keeps its core; they take what
         # it leaves idle): the OCCT side, and with a second helper to spare, the exact reference at

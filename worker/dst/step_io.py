@@ -14,7 +14,7 @@ from functools import cached_property
 import numpy as np
 from OCP.BRep import BRep_Builder, BRep_Tool
 from OCP.BRepAdaptor import BRepAdaptor_Curve
-from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeSolid, BRepBuilderAPI_Sewing
+from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeSolid, BRepBuilderAPI_Sewing, BRepBuilderAPI_Transform
 from OCP.BRepCheck import BRepCheck_Analyzer
 from OCP.BRepGProp import BRepGProp
 from OCP.BRepTools import BRepTools_ReShape
@@ -22,7 +22,7 @@ from OCP.collections import (
     IndexedDataMap_TopoDS_Shape_List_TopoDS_Shape_TopTools_ShapeMapHasher as ShapeAncestorMap,
 )
 from OCP.collections import Sequence_TCollection_AsciiString
-from OCP.gp import gp_Pnt
+from OCP.gp import gp_Pnt, gp_Trsf
 from OCP.GProp import GProp_GProps
 from OCP.IFSelect import IFSelect_ReturnStatus
 from OCP.ShapeFix import ShapeFix_Solid, ShapeFix_Wireframe
@@ -59,6 +59,8 @@ class LoadedPart:
     source_units: list[str]
     warnings: list[str] = field(default_factory=list)
     sewn: bool = False
+    # degrees about the fixed x, y and z axes, in that order, applied to the file's geometry (``orient``)
+    rotation: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     @property
     def compound(self) -> TopoDS_Compound:
@@ -144,6 +146,59 @@ def read_step(path: str | os.PathLike[str]) -> LoadedPart:
             "in the file); each was split into its separate corners"
         )
     return LoadedPart(solids=solids, source_units=units, warnings=warnings, sewn=sewn)
+
+
+NO_ROTATION = (0.0, 0.0, 0.0)
+
+
+def rotation_matrix(rotation: tuple[float, float, float]) -> np.ndarray:
+    """The 3 x 3 matrix turning a part ``rotation[0]`` degrees about x, then ``rotation[1]`` about y,
+    then ``rotation[2]`` about z (fixed axes, right-handed: 90 about x takes +y to +z). Multiples of
+    90 degrees give exact 0 and +-1 entries, so a face that the turn makes horizontal is exactly
+    horizontal (cos(pi / 2) is 6e-17 in floating point, which would tilt it)."""
+    m = np.eye(3)
+    for axis, deg in enumerate(rotation):
+        c, s = _cos_sin(deg)
+        i, j = [(1, 2), (2, 0), (0, 1)][axis]  # the plane the turn about ``axis`` acts in
+        r = np.eye(3)
+        r[i, i], r[i, j], r[j, i], r[j, j] = c, -s, s, c
+        m = r @ m
+    return m
+
+
+def _cos_sin(deg: float) -> tuple[float, float]:
+    quarter, rest = divmod(float(deg), 90.0)
+    if rest == 0.0:
+        return [(1.0, 0.0), (0.0, 1.0), (-1.0, 0.0), (0.0, -1.0)][int(quarter) % 4]
+    rad = np.radians(deg)
+    return float(np.cos(rad)), float(np.sin(rad))
+
+
+def orient(part: LoadedPart, rotation: tuple[float, float, float]) -> LoadedPart:
+    """``part`` turned by ``rotation`` (see ``rotation_matrix``) about the origin, as the part is to be
+    printed: the slicing planes are horizontal in the turned part. The solids' curves and surfaces
+    are transformed (copies; the part itself is not changed), so no placement is left on them.
+    Returns ``part`` itself when it already has this rotation; a part read with another one is
+    turned from the file's placement again, never on top of it."""
+    rotation = tuple(float(a) for a in rotation)
+    if rotation == part.rotation:
+        return part
+    if part.rotation != NO_ROTATION:
+        raise ValueError(f"the part is already turned by {part.rotation}; orient the file's part instead")
+    m = rotation_matrix(rotation)
+    trsf = gp_Trsf()
+    trsf.SetValues(*m[0], 0.0, *m[1], 0.0, *m[2], 0.0)
+    solids = []
+    for solid in part.solids:
+        turned = BRepBuilderAPI_Transform(solid, trsf, True).Shape()
+        solids.append(TopoDS.Solid(turned))
+    return LoadedPart(
+        solids=solids,
+        source_units=part.source_units,
+        warnings=list(part.warnings),
+        sewn=part.sewn,
+        rotation=rotation,
+    )
 
 
 VOLUME_REL_EPS = 1e-8

@@ -11,6 +11,7 @@ from worker.dst.params import SliceParams
         ("layer_height", 50, "layer_height must be between 0.01 and 2 mm, got 50"),
         ("chord_error", 0, "chord_error must be between 0.0001 and 1 mm, got 0"),
         ("segment_length", -1, "segment_length must be between 0.01 and 50 mm"),
+        ("rotate_y", 361, "rotate_y must be between -360 and 360 degrees, got 361"),
     ],
 )
 def test_out_of_range_values_name_the_allowed_range(field, value, message):

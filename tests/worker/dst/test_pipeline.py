@@ -65,6 +65,31 @@ def test_hemisphere_mesh_is_watertight_and_cut_exactly_at_the_planes(hemisphere)
     assert len(hemisphere.triangles) < 2.2 * n_ring
 
 
+@pytest.mark.parametrize("angles", [(90, 0, 0), (0, 30, 0), (10, -25, 40), (180, 0, 0)])
+def test_a_turned_hemisphere_has_its_rings_on_the_turned_sphere_and_face(make_step, angles):
+    """The part is sliced in the orientation asked for: each ring vertex lies on the turned sphere
+    or on the turned flat face, in closed form (the sphere's centre is the origin, turned, then
+    lifted by the part's lowest point: the rim's, -20 sqrt(1 - n_z^2), or the sphere's, -20, when
+    the dome faces down; the highest likewise)."""
+    from worker.dst.step_io import rotation_matrix
+
+    params = SliceParams(rotate_x=angles[0], rotate_y=angles[1], rotate_z=angles[2])
+    mesh = slice_step(make_step("hemisphere", radius=20.0), params)
+    assert_watertight(mesh)
+    assert_slab_property(mesh)
+    n = rotation_matrix(angles) @ [0.0, 0.0, 1.0]  # the flat face's normal, into the dome
+    zmin = -20.0 if n[2] <= 1e-12 else -20.0 * math.sqrt(max(0.0, 1.0 - n[2] ** 2))
+    v, zs = _ring_xyz(mesh)
+    d = np.column_stack([v[:, :2], zs + zmin])  # from the sphere's centre
+    off_sphere = np.abs(np.linalg.norm(d, axis=1) - 20.0)
+    off_face = np.abs(d @ n)
+    np.testing.assert_array_less(np.minimum(off_sphere, off_face), EXACT_TOL)
+    assert (d @ n > -EXACT_TOL).all()  # on the dome's side of the face
+    assert (off_sphere < EXACT_TOL).mean() > 0.5
+    zmax = 20.0 if n[2] >= -1e-12 else 20.0 * math.sqrt(max(0.0, 1.0 - n[2] ** 2))
+    assert mesh.planes.section_z[-1] < zmax - zmin <= mesh.planes.section_z[-1] + 0.2
+
+
 def test_cone_rings_follow_the_linear_radius(make_step):
     mesh = slice_step(make_step("cone", radius=10.0, height=20.0), SliceParams(layer_height=0.25))
     assert_watertight(mesh)

@@ -626,6 +626,36 @@ def test_slice_and_report_gives_the_mesh_and_report_of_the_two_steps(hemisphere,
     assert report.input == two_steps.input and report.warnings == two_steps.warnings
 
 
+def test_a_turned_part_is_measured_turned(hemisphere):
+    """The hemisphere lying on its side (90 degrees about x: the dome towards -y): the job's report
+    (baselines and reference made in helpers forked from the turned part) measures the DST mesh and
+    the baseline against the turned part, and so does a report given the part as read (it turns it
+    as the parameters say)."""
+    from worker.dst.report import slice_and_report
+
+    path, _, _, _ = hemisphere
+    params = SliceParams(layer_height=0.2, rotate_x=90)
+    mesh, report = slice_and_report(path, params, baselines=["occt_fast"])
+    assert report.params.rotate_x == 90 and len(report.planes) == 200
+    assert report.input.height_mm == pytest.approx(2 * R, abs=1e-6)
+    # the turned part's box, in its own placement (before the drop to z = 0)
+    np.testing.assert_allclose(report.input.bbox_min, (-R, -R, -R), atol=1e-3)
+    np.testing.assert_allclose(report.input.bbox_max, (R, 0.0, R), atol=1e-3)
+    dst, fast = report.meshes
+    assert dst.summary.max_vertex_dev < 1e-4 and dst.summary.layers_loop_mismatch == 0
+    # (a baseline of the unturned part would be ~20 mm off; 0.085 mm of deflection is up to ~0.4 mm
+    # across at the shallow top and bottom layers)
+    assert abs(fast.volume_rel_err) < 0.01 and 1e-4 < fast.summary.mean_vertex_dev < 0.1
+    assert fast.summary.max_vertex_dev < 1.0
+    assert fast.summary.layers_missing == fast.summary.layers_extra == 0
+    again = build_report(read_step(path), params, file_name=str(path), dst=mesh, baselines=["occt_fast"])
+    assert _numbers(again) == _numbers(report)
+    from worker.dst.render import render_html
+
+    assert "sliced turned 90° about x." in render_html(report, b"<svg></svg>")
+    assert "turned" not in render_html(hemisphere[2], b"<svg></svg>")
+
+
 def test_a_jobs_helpers_yield_to_its_build(hemisphere, monkeypatch, tmp_path):
     """Both helpers of a job, the exact reference and OCCT's, run at a lower priority than its DST
     build (they take the core it leaves idle)."""

@@ -1,7 +1,8 @@
+import numpy as np
 import pytest
 
 from worker.dst.errors import EmptyGeometryError, NotASolidError, StepReadError
-from worker.dst.step_io import read_step, sniff_step, solid_volume
+from worker.dst.step_io import LoadedPart, orient, read_step, rotation_matrix, sniff_step, solid_volume
 
 
 def test_sniff_accepts_part21_and_refuses_others():
@@ -188,3 +189,64 @@ def test_a_face_the_mesher_cannot_mesh_is_retried_after_the_wire_repair(monkeypa
         pipeline.slice_part(
             LoadedPart(solids=[_notched_box()], source_units=["MM"]), SliceParams(layer_height=0.2)
         )
+
+
+def _vertices(solid) -> np.ndarray:
+    from OCP.BRep import BRep_Tool
+    from OCP.TopAbs import TopAbs_VERTEX
+    from OCP.TopExp import TopExp_Explorer
+    from OCP.TopoDS import TopoDS
+
+    pts = []
+    exp = TopExp_Explorer(solid, TopAbs_VERTEX)
+    while exp.More():
+        pts.append(BRep_Tool.Pnt_s(TopoDS.Vertex(exp.Current())).Coord())
+        exp.Next()
+    return np.unique(np.array(pts), axis=0)
+
+
+@pytest.mark.parametrize("angles", [(90, 0, 0), (0, -90, 180), (30, 0, 0), (12.5, -70, 200), (-360, 360, 45)])
+def test_rotation_matrix_is_the_turn_about_x_then_y_then_z(angles):
+    from scipy.spatial.transform import Rotation
+
+    m = rotation_matrix(angles)
+    # scipy's lower-case 'xyz': extrinsic turns about the fixed axes, x first
+    assert np.allclose(m, Rotation.from_euler("xyz", angles, degrees=True).as_matrix(), atol=1e-15)
+    assert np.allclose(m @ m.T, np.eye(3), atol=1e-15) and np.linalg.det(m) == pytest.approx(1.0)
+    if all(a % 90 == 0 for a in angles):  # exactly: a face turned horizontal is exactly horizontal
+        assert set(np.unique(m)) <= {-1.0, 0.0, 1.0}
+
+
+def test_orient_turns_the_solids_and_leaves_the_read_part_alone(tmp_path):
+    import build123d as bd
+
+    from tests.conftest import write_step
+
+    box = bd.Box(10, 20, 30, align=(bd.Align.MIN, bd.Align.MIN, bd.Align.MIN))
+    part = read_step(write_step(box, tmp_path / "box.step", nurbs=False))
+    corners = _vertices(part.solids[0])
+    up = orient(part, (90, 0, 0))  # y -> z, z -> -y
+    turned = _vertices(up.solids[0])
+    assert turned.min(axis=0).tolist() == [0.0, -30.0, 0.0]
+    assert turned.max(axis=0).tolist() == [10.0, 0.0, 20.0]
+    assert np.array_equal(_vertices(part.solids[0]), corners)  # a copy was turned
+    assert up.rotation == (90.0, 0.0, 0.0) and part.rotation == (0.0, 0.0, 0.0)
+    assert up.volume_mm3 == pytest.approx(6000.0, rel=1e-9)
+    assert orient(up, (90, 0, 0)) is up and orient(part, (0, 0, 0)) is part
+    with pytest.raises(ValueError, match="already turned"):
+        orient(up, (0, 90, 0))
+    odd = orient(part, (12.5, -70, 200))
+    expect = np.unique(corners @ rotation_matrix((12.5, -70, 200)).T, axis=0)
+    assert np.allclose(_vertices(odd.solids[0]), expect, atol=1e-12)
+
+
+def test_orient_turns_a_placed_solid_with_its_placement(tmp_path):
+    """An assembly's instances come with a placement (a TopLoc_Location) on their shapes: the turn
+    applies to where the solid is, not to its geometry before placement."""
+    import build123d as bd
+
+    placed = bd.Pos(100, 0, 0) * bd.Box(2, 2, 2).solid()
+    assert not placed.wrapped.Location().IsIdentity()
+    part = LoadedPart(solids=[placed.wrapped], source_units=["MM"])
+    turned = _vertices(orient(part, (0, 0, 90)).solids[0])  # x -> y
+    assert np.allclose(turned.min(axis=0), [-1, 99, -1]) and np.allclose(turned.max(axis=0), [1, 101, 1])
