@@ -77,6 +77,12 @@ KNOWN_PLANE_DEVIATIONS: dict[str, str] = {
         "spike into both the ring and the reference; the ring samples the face's side of it more densely "
         "than the reference does (0.009 mm)"
     ),
+    "ec_soapbox-A.stp turned (0.0, 35.0, 0.0)": (
+        "z = 0.1 and 36.1: the plane grazes a crest, and the section has a narrow tongue (0.07 mm wide, "
+        "1 mm long at z = 0.1, near x 25.8, y 41.7; 0.04 mm wide at z = 36.1): the ring stops 0.73 mm "
+        "(0.077 mm) short of its tip (OCCT's section reaches it), the reference 0.40 mm (0.006 mm); "
+        "z = 0.3: the reference's gap above"
+    ),
     "bug29241.stp": (
         "z = 266.7 (a flat face on the plane): no exact point beside the face closer than 3e-5 mm to it "
         "(a neighbour's vertex off its plane by the file's tolerance), where a fillet tangent to the face "
@@ -88,7 +94,10 @@ KNOWN_PLANE_DEVIATIONS: dict[str, str] = {
 # from it) must name exactly these planes, and appear on no other file. (None since the topology meshes
 # get node rows on horizontal ridges: bug27453's plane 87, a sliver 2.5 um below a hole's top line, was
 # one.)
-REFERENCE_GAPS: dict[str, str] = {}
+REFERENCE_GAPS: dict[str, str] = {
+    # the reference is 0.009 mm off OCCT's own section near (25.5, -35.4), where the DST ring is not
+    "ec_soapbox-A.stp turned (0.0, 35.0, 0.0)": "at 1 plane(s) (1; the largest at plane 1,",
+}
 
 
 # Parts too large for 0.2 mm layers within the triangle limit, sliced coarser so their geometry is
@@ -234,7 +243,7 @@ def test_corpus_file(path: Path, tmp_path):
     _check_every_plane(mesh, path)
 
 
-def _check_every_plane(mesh, path: Path) -> None:
+def _check_every_plane(mesh, path: Path, key: str | None = None) -> None:
     """Every plane, measured as the deviation report measures it (its own exact reference, from a
     finer topology mesh, sampled to 0.001 mm): the DST cut's vertices on the exact section, the cut
     within the chord budget of it both ways, as many loops as the exact section. Files with known
@@ -253,15 +262,16 @@ def _check_every_plane(mesh, path: Path) -> None:
         elif layer.loops + layer.open_chains != layer.loops_exact:
             bad.append(f"z = {layer.z:.4f}: {layer.loops} loops cut, {layer.loops_exact} exact")
     gaps = [w for w in report.warnings if "reference misses part of the section" in w]
-    if path.name in REFERENCE_GAPS:
-        assert len(gaps) == 1 and REFERENCE_GAPS[path.name] in gaps[0], gaps
+    key = key or path.name  # what KNOWN_PLANE_DEVIATIONS and REFERENCE_GAPS know the case by
+    if key in REFERENCE_GAPS:
+        assert len(gaps) == 1 and REFERENCE_GAPS[key] in gaps[0], gaps
     else:
         assert not gaps, gaps
-    known = KNOWN_PLANE_DEVIATIONS.get(path.name)
+    known = KNOWN_PLANE_DEVIATIONS.get(key)
     if known is None:
         assert not bad, f"{len(bad)} of {len(dst.layers)} planes: " + "; ".join(bad[:8])
         return
-    assert bad, f"{path.name} now passes at every plane: remove it from KNOWN_PLANE_DEVIATIONS"
+    assert bad, f"{key} now passes at every plane: remove it from KNOWN_PLANE_DEVIATIONS"
     pytest.xfail(f"{known} ({len(bad)} planes, e.g. {bad[0]})")
 
 
@@ -277,3 +287,39 @@ def test_a_face_occt_cannot_mesh_is_closed_and_reported():
     assert_watertight(mesh)
     assert any("could not mesh face 73" in w and "sliver" in w for w in mesh.warnings), mesh.warnings
     assert any("node(s) on cracks were merged" in w for w in mesh.warnings), mesh.warnings
+
+
+# Parts turned to another print orientation: every check of ``test_corpus_file``, on sections the file's
+# own orientation never shows (ec_soapbox-A at 35 degrees about y had midpoints of 0.02 mm segments
+# land 0.2 mm away on another piece of the section, and was split into 1.5 million segments down to
+# 1e-7 mm: 3.2 million triangles, 50 s; bug21802_as1 is an assembly of placed instances).
+TURNED = {
+    "ec_soapbox-A.stp": (0.0, 35.0, 0.0),
+    "bug21802_as1-oc-214.stp": (90.0, 0.0, 30.0),
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "path",
+    [pytest.param(p, id=f"{p.parent.name}/{p.name}") for p in FILES if p.name in TURNED]
+    or [
+        pytest.param(
+            None,
+            marks=pytest.mark.skip(reason=f"the shared STEP corpus is not beside this checkout ({CORPUS})"),
+        )
+    ],
+)
+def test_corpus_file_turned(path: Path):
+    rx, ry, rz = TURNED[path.name]
+    mesh = slice_step(path, _params(path).model_copy(update={"rotate_x": rx, "rotate_y": ry, "rotate_z": rz}))
+    assert_watertight(mesh)
+    assert_slab_property(mesh)
+    vol = mesh.stats["mesh_volume_mm3"] / mesh.part.volume_mm3
+    assert 0.97 < vol < 1.03, f"volume ratio {vol}"
+    assert not [w for w in mesh.warnings if "exceed the segment budget" in w], mesh.warnings
+    edges, _ = ring_edges(mesh)
+    lengths = np.linalg.norm(mesh.vertices[edges[:, 0]] - mesh.vertices[edges[:, 1]], axis=1)
+    assert np.median(lengths) > 0.5 * mesh.params.segment_length  # the budget is used, not split away
+    _check_against_exact_sections(mesh)
+    _check_every_plane(mesh, path, f"{path.name} turned {TURNED[path.name]}")

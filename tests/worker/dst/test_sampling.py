@@ -53,8 +53,10 @@ def test_midpoints_the_seed_path_left_off_their_segment_are_solved_from_the_chor
     segment's midpoint next to an end, or find none: the segment would pass the chord check
     unseen. Such midpoints are solved again from the chord's middle, onto the exact section (the
     circle, at the chord's middle); one that still cannot be placed (here: the plane does not meet
-    the face named) is counted, not passed silently; a midpoint in its segment's middle and a
-    segment within the chord budget whatever its arc are left as they are."""
+    the face named) is counted, not passed silently; a midpoint in its segment's middle is left as
+    it is. A segment within the chord budget whatever its arc has an off-middle midpoint solved
+    again too (measured where it was, on another piece of the curve, it would fail the segment and
+    its parts without end: ec_soapbox-A turned 35 degrees); one not found is dropped, not counted."""
     sampler, cone, base = cone_sampler
     a0, a1 = 0.3, 1.1  # a 5.8 mm chord of the 7.5 mm circle (sag 0.6 mm)
     pa, pb = _on_circle(a0), _on_circle(a1)
@@ -67,6 +69,8 @@ def test_midpoints_the_seed_path_left_off_their_segment_are_solved_from_the_chor
         (base, near_end, True, pb),
         (cone, middle, True, pb),
         (cone, pa, True, short_b),
+        (base, pa, True, short_b),
+        (cone, _on_circle(a0 + 0.0005), True, short_b),
     ]
     face = np.array([c[0] for c in cases])
     mid = np.array([c[1] for c in cases])
@@ -87,9 +91,13 @@ def test_midpoints_the_seed_path_left_off_their_segment_are_solved_from_the_chor
     # the one on the base face: no point of that face on the plane, counted
     assert sampler.stats.unchecked_segments == before + 1
     np.testing.assert_array_equal(mid[2], near_end)
-    # already in the middle, and within the budget: untouched
+    # already in the middle: untouched
     np.testing.assert_array_equal(mid[3], middle)
-    np.testing.assert_array_equal(mid[4], pa)
+    np.testing.assert_array_equal(mid[6], _on_circle(a0 + 0.0005))
+    # within the budget, its midpoint at an end: solved at the middle; on the wrong face: dropped
+    assert mid_ok[4] and math.atan2(mid[4, 1], mid[4, 0]) == pytest.approx(a0 + 0.0005, abs=1e-7)
+    assert math.hypot(mid[4, 0], mid[4, 1]) == pytest.approx(R_Z, abs=1e-6)
+    assert not mid_ok[5]
 
 
 def test_a_crossing_whose_root_lies_beyond_its_face_is_dropped_from_the_ring(tmp_path):
