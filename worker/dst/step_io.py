@@ -50,6 +50,8 @@ LOOSE_VERTEX_GAP_MM = 0.05
 VERTEX_MIN_TOL_MM = 1e-7  # OCCT's Precision::Confusion()
 HEAL_VOLUME_REL = 1e-4  # a repair of face boundaries may change the solid's volume by this much at most
 
+NO_ROTATION = (0.0, 0.0, 0.0)
+
 
 @dataclass
 class LoadedPart:
@@ -60,7 +62,7 @@ class LoadedPart:
     warnings: list[str] = field(default_factory=list)
     sewn: bool = False
     # degrees about the fixed x, y and z axes, in that order, applied to the file's geometry (``orient``)
-    rotation: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rotation: tuple[float, float, float] = NO_ROTATION
 
     @property
     def compound(self) -> TopoDS_Compound:
@@ -146,9 +148,6 @@ def read_step(path: str | os.PathLike[str]) -> LoadedPart:
             "in the file); each was split into its separate corners"
         )
     return LoadedPart(solids=solids, source_units=units, warnings=warnings, sewn=sewn)
-
-
-NO_ROTATION = (0.0, 0.0, 0.0)
 
 
 def rotation_matrix(rotation: tuple[float, float, float]) -> np.ndarray:

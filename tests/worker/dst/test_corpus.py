@@ -24,7 +24,7 @@ from tests.worker.dst.meshcheck import (
     ring_edges,
 )
 from worker.dst.errors import DstError
-from worker.dst.params import SliceParams
+from worker.dst.params import ROTATION_FIELDS, SliceParams
 from worker.dst.pipeline import slice_step
 from worker.dst.report import build_report
 
@@ -186,11 +186,13 @@ def _case(p: Path):
     return pytest.param(p, marks=marks, id=f"{p.parent.name}/{p.name}")
 
 
-_CASES = [_case(p) for p in FILES] or [
+# the one case of a parametrised corpus test where the corpus is absent
+_NO_CORPUS = [
     pytest.param(
         None, marks=pytest.mark.skip(reason=f"the shared STEP corpus is not beside this checkout ({CORPUS})")
     )
 ]
+_CASES = [_case(p) for p in FILES] or _NO_CORPUS
 
 
 # OCCT's STEP parser has been seen to spin forever (StepData_StepReaderData::SetEntityNumbers) on a
@@ -302,17 +304,11 @@ TURNED = {
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "path",
-    [pytest.param(p, id=f"{p.parent.name}/{p.name}") for p in FILES if p.name in TURNED]
-    or [
-        pytest.param(
-            None,
-            marks=pytest.mark.skip(reason=f"the shared STEP corpus is not beside this checkout ({CORPUS})"),
-        )
-    ],
+    [pytest.param(p, id=f"{p.parent.name}/{p.name}") for p in FILES if p.name in TURNED] or _NO_CORPUS,
 )
 def test_corpus_file_turned(path: Path):
-    rx, ry, rz = TURNED[path.name]
-    mesh = slice_step(path, _params(path).model_copy(update={"rotate_x": rx, "rotate_y": ry, "rotate_z": rz}))
+    turn = dict(zip(ROTATION_FIELDS, TURNED[path.name], strict=True))
+    mesh = slice_step(path, _params(path).model_copy(update=turn))
     assert_watertight(mesh)
     assert_slab_property(mesh)
     vol = mesh.stats["mesh_volume_mm3"] / mesh.part.volume_mm3
