@@ -13,7 +13,8 @@ CORPUS = Path(__file__).resolve().parents[1].parent / "shared" / "corpus"
 
 def build_part(kind: str, **kw):
     """An analytic part as a build123d shape (mm). Kinds: hemisphere, torus, cone, tube, step_box,
-    tangent_features, dome_below_top, tilted_boss, through_hole, lying_cylinder, half_torus."""
+    tangent_features, dome_below_top, tilted_boss, through_hole, lying_cylinder, half_torus,
+    filleted_ridge."""
     import build123d as bd
 
     if kind == "hemisphere":
@@ -21,6 +22,12 @@ def build_part(kind: str, **kw):
         return bd.Sphere(r) - bd.Box(
             3 * r, 3 * r, 3 * r, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MAX)
         )
+    if kind == "filleted_ridge":
+        # A 40 x 10 x 10 block whose top edge along x at y = +5 is rounded with radius ``radius``:
+        # turned 45 degrees about x, that edge is a ridge whose crest is the fillet's middle line.
+        block = bd.Box(40.0, 10.0, 10.0)
+        edge = block.edges().filter_by(bd.Axis.X).filter_by(lambda e: e.center().Y > 0).sort_by(bd.Axis.Z)[-1]
+        return bd.fillet(edge, kw.get("radius", 0.3))
     if kind == "torus":
         return bd.Torus(kw.get("major", 15.0), kw.get("minor", 5.0))
     if kind == "cone":

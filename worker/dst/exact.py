@@ -18,16 +18,24 @@ import math
 from OCP.BRep import BRep_Tool
 from OCP.BRepAdaptor import BRepAdaptor_Curve, BRepAdaptor_Surface
 from OCP.Extrema import Extrema_ExtPC
+from OCP.GeomAbs import GeomAbs_Sphere
 from OCP.gp import gp_Pnt, gp_Pnt2d, gp_Vec
 from OCP.IntTools import IntTools_FClass2d
 from OCP.ShapeAnalysis import ShapeAnalysis_Surface
-from OCP.TopAbs import TopAbs_IN, TopAbs_ON
+from OCP.TopAbs import TopAbs_IN, TopAbs_ON, TopAbs_REVERSED
 from scipy.optimize import brentq, minimize_scalar
 
 from worker.dst.constants import ROOT_XTOL
 
 # a walk along a section curve stops this close (mm, along the curve) to the point nearest its target
 WALK_TOL_MM = 1e-7
+# a trace along a section curve (``FaceEval.trace_level``) takes a step only where the curve's direction
+# turns by less than this over it (else the step is halved): it follows a bend of any radius
+TRACE_MAX_TURN_COS = math.cos(math.radians(15.0))
+# ... and arrives where the chord to its target is within 30 degrees of the curve at both ends
+TRACE_ARRIVAL_COS = math.cos(math.radians(30.0))
+TRACE_MIN_STEP_MM = 1e-6  # a bend needing shorter steps is a cusp of the section: the trace gives up
+TRACE_MAX_STEPS = 20_000
 
 _RTOL = 4.5 * 2.220446049250313e-16  # brentq refuses anything below 4 * machine epsilon
 
@@ -44,13 +52,16 @@ class FaceEval:
     adaptor : BRepAdaptor_Surface of the face (location applied)
     """
 
-    __slots__ = ("ad", "face", "u0", "u1", "v0", "v1", "_p", "_du", "_dv", "_sas", "_fclass")
+    __slots__ = ("ad", "face", "u0", "u1", "v0", "v1", "outward", "_p", "_du", "_dv", "_sas", "_fclass")
 
     def __init__(self, adaptor: BRepAdaptor_Surface):
         self.ad = adaptor
         self.face = adaptor.Face()
         self.u0, self.u1 = adaptor.FirstUParameter(), adaptor.LastUParameter()
         self.v0, self.v1 = adaptor.FirstVParameter(), adaptor.LastVParameter()
+        # Pu x Pv times this is the outward normal (the adaptor evaluates the surface, whatever the
+        # face's orientation)
+        self.outward = -1.0 if self.face.Orientation() == TopAbs_REVERSED else 1.0
         self._p, self._du, self._dv = gp_Pnt(), gp_Vec(), gp_Vec()
         self._sas = None
         self._fclass: dict[float, IntTools_FClass2d] = {}
@@ -157,6 +168,111 @@ class FaceEval:
             if not (self.u0 <= u <= self.u1 and self.v0 <= v <= self.v1):
                 raise ExactFailure("the walk left the surface")
         raise ExactFailure("the walk did not arrive")
+
+    def section_direction(self, u: float, v: float) -> tuple[float, float] | None:
+        """The unit (x, y) direction of the section curve through (u, v) that keeps the solid's material
+        on its left seen from above (the sections' loop orientation): ez x the outward normal. None
+        where the surface is horizontal (no section direction)."""
+        p, du, dv = self._p, self._du, self._dv
+        self.ad.D1(u, v, p, du, dv)
+        n = du.Crossed(dv)
+        nx, ny = self.outward * n.X(), self.outward * n.Y()
+        h = math.hypot(nx, ny)
+        if h < 1e-12 * max(du.Magnitude() * dv.Magnitude(), 1e-300):
+            return None
+        return -ny / h, nx / h
+
+    def trace_level(
+        self,
+        u: float,
+        v: float,
+        c: float,
+        target: tuple[float, float],
+        target_direction: tuple[float, float],
+        *,
+        step: float,
+        max_length: float,
+    ) -> list[tuple[float, float, float, float]]:
+        """From (u, v) on the section ``z = c``, follow that section curve forward (the loops'
+        direction, ``section_direction``) until ``target`` (x, y) lies ahead of it within a step, the
+        chord to it within 30 degrees of the curve's direction at both ends (``target_direction`` at
+        the target: the far side of a narrow tongue is just as near, but runs the other way).
+
+        Returns the points passed, (x, y, u, v), without the start and the target. Each step goes at
+        most ``step`` mm along the tangent and is pulled back onto ``z = c``; a step over which the
+        curve's direction turns by more than 15 degrees is halved, so a bend of any radius is
+        followed on its own branch (the tip of a narrow tongue of the section, 0.07 mm wide, where
+        the plane grazes a crest). Raises ExactFailure if the trace leaves the face (its parameter
+        box where that bounds the surface, or its trim), meets a horizontal point, needs steps
+        under 1 nm or runs ``max_length`` mm without arriving.
+        """
+        p, du, dv = self._p, self._du, self._dv
+        tx, ty = target
+        # beyond the box in a periodic direction, or past a sphere's pole, is still on the surface
+        box_u = not self.ad.IsUPeriodic()
+        box_v = not self.ad.IsVPeriodic() and self.ad.GetType() != GeomAbs_Sphere
+        d = self.section_direction(u, v)
+        if d is None:
+            raise ExactFailure("the section curve has no direction here")
+        x, y = self.point(u, v)[:2]
+        h = 0.25 * step
+        out: list[tuple[float, float, float, float]] = []
+        length = 0.0
+        for _ in range(TRACE_MAX_STEPS):
+            qx, qy = tx - x, ty - y
+            dist = math.hypot(qx, qy)
+            along = qx * d[0] + qy * d[1]
+            ahead = (
+                along >= TRACE_ARRIVAL_COS * dist
+                and qx * target_direction[0] + qy * target_direction[1] >= TRACE_ARRIVAL_COS * dist
+            )
+            if ahead and dist <= h:
+                return out
+            if ahead and dist <= 2.0 * h:
+                h = 0.5 * dist  # not past it: the next point is then within a step
+            if length > max_length:
+                break
+            self.ad.D1(u, v, p, du, dv)
+            su, sv = -dv.Z(), du.Z()  # along the level curve in (u, v)
+            tan_x, tan_y = du.X() * su + dv.X() * sv, du.Y() * su + dv.Y() * sv
+            speed = math.hypot(tan_x, tan_y)
+            if speed < 1e-300:
+                raise ExactFailure("flat spot on the trace")
+            if tan_x * d[0] + tan_y * d[1] < 0.0:
+                su, sv = -su, -sv
+            while True:
+                un, vn = self._onto_level(u + su * h / speed, v + sv * h / speed, c)
+                dn = self.section_direction(un, vn) if un is not None else None
+                if dn is not None and dn[0] * d[0] + dn[1] * d[1] > TRACE_MAX_TURN_COS:
+                    break
+                h *= 0.5
+                if h < TRACE_MIN_STEP_MM:
+                    raise ExactFailure("a cusp on the trace")
+            if (box_u and not self.u0 <= un <= self.u1) or (box_v and not self.v0 <= vn <= self.v1):
+                raise ExactFailure("the trace left the face (its parameter range)")
+            if not self.contains(un, vn, tol=1e-6):
+                raise ExactFailure("the trace left the face (its trim)")
+            xn, yn = self.point(un, vn)[:2]
+            length += math.hypot(xn - x, yn - y)
+            u, v, x, y, d = un, vn, xn, yn, dn
+            out.append((x, y, u, v))
+            h = min(1.5 * h, step)
+        raise ExactFailure("the trace did not arrive")
+
+    def _onto_level(self, u: float, v: float, c: float) -> tuple[float, float] | tuple[None, None]:
+        """(u, v) moved onto ``z = c`` along the height gradient (Newton), or (None, None)."""
+        p, du, dv = self._p, self._du, self._dv
+        for _ in range(30):
+            self.ad.D1(u, v, p, du, dv)
+            g = p.Z() - c
+            if abs(g) < 1e-12:
+                return u, v
+            gu, gv = du.Z(), dv.Z()
+            n2 = gu * gu + gv * gv
+            if n2 < 1e-24:
+                return None, None
+            u, v = u - g * gu / n2, v - g * gv / n2
+        return None, None
 
 
 class EdgeEval:

@@ -88,7 +88,9 @@ def face_optimum_from_nodes(mesh: TopoMesh, f: int, sel: np.ndarray, sign: float
 
 def _face_optimum(fe, uv0: np.ndarray, sign: float) -> tuple[float, float]:
     """(u, v) of the face's lowest (sign=+1) or highest (sign=-1) point reached from ``uv0`` by bounded
-    L-BFGS on the untrimmed surface (the caller checks the trim)."""
+    L-BFGS on the untrimmed surface (the caller checks the trim). A periodic direction is not bounded:
+    the surface goes on past its seam (a torus turned to an odd angle has its lowest point just across
+    the seam from its lowest node: bounded there, the search stopped on the seam 2.2 um higher)."""
 
     def fun(x: np.ndarray) -> tuple[float, np.ndarray]:
         z, zu, zv = fe.z_and_grad(float(x[0]), float(x[1]))
@@ -99,7 +101,10 @@ def _face_optimum(fe, uv0: np.ndarray, sign: float) -> tuple[float, float]:
         np.asarray(uv0, dtype=np.float64),
         jac=True,
         method="L-BFGS-B",
-        bounds=[(fe.u0, fe.u1), (fe.v0, fe.v1)],
+        bounds=[
+            (None, None) if fe.period(0) else (fe.u0, fe.u1),
+            (None, None) if fe.period(1) else (fe.v0, fe.v1),
+        ],
         options={"ftol": 1e-15, "gtol": 1e-12},
     )
     return float(res.x[0]), float(res.x[1])

@@ -17,6 +17,13 @@ exact for circles and measures the sagitta to second order in the segment length
 curves; a segment whose midpoint may not show its largest distance (see ``_quarter_sags``) is also
 checked at its quarter points.
 
+Last, where a ring turns sharply at a vertex inside a face and a segment there runs against the
+section curve's own direction (from the surface normal: the loops keep the material on their left),
+the curve makes an excursion the seeds did not follow: the tongue a plane cuts where it grazes a
+crest that is not level, whose tip lies beyond the topology mesh's. That piece is traced along the
+exact curve from one end to the other and sampled again with the trace as seeds
+(``_excursion_runs``).
+
 All Newton solves of one loop run as one batch (numpy bookkeeping, one OCCT ``D1`` per point and
 iteration), which keeps the Python overhead per ring vertex to a few microseconds.
 """
@@ -63,6 +70,17 @@ TRIM_TOL_MM = 1e-6
 KINK_MARGIN_REL = 1e-9
 KINK_MIN_SPACING_REL = 1e-9  # a kink this close to a run's end (relative to its length) is that end
 MAX_REFINE_ROUNDS = 40  # halving a segment 24 times takes 1 m down to 60 nm: still failing means broken
+# A sampled ring turning by more than this (cosine) at a vertex inside a face is checked for an
+# excursion of the curve its segments skip (``_excursion_runs``); a correct sampling turns that much
+# only round a bend of radius under ~7 chord budgets
+EXCURSION_TURN_COS = 0.5
+# ... and a segment leaving (or reaching) such a vertex at more than this angle (cosine) from the
+# curve's own direction there is followed along the exact curve
+EXCURSION_TANGENT_COS = 0.5
+# a trace from one end of a segment to the other gives up after this many mm (or 100 segment lengths)
+EXCURSION_MAX_TRACE_MM = 50.0
+# segments against the curve's direction this few ring positions apart are one stretch to re-trace
+EXCURSION_CLUSTER_GAP = 32
 
 
 class VertexPool:
@@ -122,6 +140,8 @@ class SamplingStats:
     tangent_segments: int = 0  # segments kept over budget where the plane is tangent to the surface
     newton_failures: int = 0  # seeds with no exact point (dropped; see tangent_segments)
     outside_face_points: int = 0  # points beyond a face's trim (a nearly tangent edge), dropped
+    excursions: int = 0  # segments re-sampled along an excursion of the curve they skipped
+    excursion_failures: int = 0  # segments suspected of skipping one that could not be traced
     reordered_crossings: int = 0  # crossings put at the section point nearest them (see _solve_crossing)
     kink_corners: int = 0  # corners placed where a section crosses a C0 line inside a face
     quarter_checks: int = 0  # segments also checked at their quarter points (see _quarter_sags)
@@ -156,6 +176,9 @@ class _Run:
     # exact ends far from their topology crossings, with the distance they moved: points near them are
     # checked against the face's trim
     moved: tuple[tuple[np.ndarray, float], ...] = ()
+    # the seed path is a trace along the exact curve (``_excursion_runs``): a point placed by arc length
+    # along it is on the right piece of the curve even where it projects beyond its segment's chord
+    traced: bool = False
 
 
 class RingSampler:
@@ -169,10 +192,15 @@ class RingSampler:
         *,
         segment_length: float,
         chord_error: float,
+        keep_crossings: bool = True,
     ):
         self.mesh, self.topo, self.pool = mesh, topo, pool
         self.seg_len = segment_length
         self.chord = chord_error
+        # a pinned loop's crossings are kept (the kept triangles use them): False where only the
+        # loops are wanted (the deviation report's reference), so that a stretch of them in the
+        # wrong order can be traced again
+        self.keep_crossings = keep_crossings
         self.stats = SamplingStats()
         self.node_vid: dict[int, int] = {}
         self.cross_vid: dict[int, int] = {}
@@ -348,21 +376,47 @@ class RingSampler:
             runs.extend(loop_runs)
             owner.extend([li] * len(loop_runs))
         pieces: dict[int, list[int]] = {li: [] for li in loop_ids}
-        for li, run_pts in zip(owner, self._sample_runs(runs), strict=True):
+        face_of: dict[int, int] = {}  # vertex id -> face of the ring segment that starts there
+        for li, run, run_pts in zip(owner, runs, self._sample_runs(runs), strict=True):
             pieces[li].extend(run_pts[:-1])
+            face_of.update(dict.fromkeys(run_pts[:-1], run.face))
         for li in loop_ids:
             ring = _dedupe_cyclic(pieces[li], self.pool)
             if len(ring) < MIN_LOOP_VERTICES:
                 # a tiny loop (a dome just below its top): sample it with at least three segments
-                runs = self._loop_runs(li, min_seg=MIN_LOOP_VERTICES)
-                ring = _dedupe_cyclic([v for r in self._sample_runs(runs) for v in r[:-1]], self.pool)
+                tiny = self._loop_runs(li, min_seg=MIN_LOOP_VERTICES)
+                ring = []
+                for run, run_pts in zip(tiny, self._sample_runs(tiny), strict=True):
+                    ring.extend(run_pts[:-1])
+                    face_of.update(dict.fromkeys(run_pts[:-1], run.face))
+                ring = _dedupe_cyclic(ring, self.pool)
                 if len(ring) < MIN_LOOP_VERTICES:
                     zc = float(self.topo.planes[self.topo.loops[li][0]])
                     raise TessellationError(
                         f"a section loop at z={zc:.4f} mm collapses to fewer than 3 points"
                     )
             out[li] = ring
+        # excursions the seeds skipped, re-sampled in one batch and spliced in (last first per ring,
+        # so that the segment indices of the others stay valid)
+        self._replace_excursions(out, face_of)
         return out
+
+    def _replace_excursions(self, rings: dict[int, list[int]], face_of: dict[int, int]) -> None:
+        """Re-sample (in place, all in one batch) the stretches of these rings that skip the exact
+        curve's excursions (``_excursion_runs``); their vertices may be dropped."""
+        found = [
+            (li, i, j, run)
+            for li, ring in rings.items()
+            for i, j, run in self._excursion_runs(ring, face_of, li, stretches=True)
+        ]
+        if not found:
+            return
+        by_loop: dict[int, list[tuple[int, int, list[int]]]] = {}
+        for (li, i, j, _), run_pts in zip(found, self._sample_runs([f[3] for f in found]), strict=True):
+            by_loop.setdefault(li, []).append((i, j, run_pts[1:-1]))
+        for li, pieces in by_loop.items():
+            rings[li] = _splice(rings[li], pieces)
+        self.stats.excursions += len(found)
 
     def _loop_runs(self, li: int, *, min_seg: int) -> list[_Run]:
         """The runs of a free loop: the pieces of its section between consecutive corners."""
@@ -407,6 +461,109 @@ class RingSampler:
                 )
             runs.append(_Run(int(faces[i0]), s, uv, step, vids[r], vids[r1], n_seg, zc, j, moved))
         return runs
+
+    def _excursion_runs(
+        self, ring: list[int], face_of: dict[int, int], li: int, *, stretches: bool
+    ) -> list[tuple[int, int, _Run]]:
+        """Runs that re-sample the pieces of loop ``li``'s sampled ``ring`` along which the exact
+        curve goes where the ring does not: (i, j, run) for the piece ring[i] -> ring[j] (j > i;
+        indices modulo the ring's length), the vertices between to be replaced by the run's.
+        ``face_of``: the face of the segment that starts at each vertex id (segments not in it are
+        left alone).
+
+        Where a plane grazes a crest that is not a level ridge line (ec_soapbox-A's rounded rim turned
+        35 degrees), the section has a narrow tongue (0.07 mm wide, 1 mm long) whose tip the topology
+        mesh's cut stops short of (by 0.73 mm): the seeds turn back early, and the segment across the
+        tongue passes its midpoint test on whichever side Newton lands. Finer topology meshes cut such
+        a tongue many times over, and their exact crossings come in the wrong order: the ring
+        zigzags between its sides. Either way a segment leaves (or reaches) a vertex against the
+        curve's own direction there (the loops' direction, from the surface normal). Looked for where
+        the ring turns sharply at a vertex inside a face, such segments are followed along the exact
+        curve (``FaceEval.trace_level``) and sampled again with the trace as seeds, where the trace
+        departs from them by more than the budget: each alone (``stretches`` False: the ring's
+        vertices are kept, as a pinned loop's crossings must be), or the whole stretch from the
+        vertex before the first such segment to the vertex after the last one of a cluster, the
+        vertices between dropped.
+        """
+        n = len(ring)
+        if n < 3:
+            return []
+        xyz = self.pool.xyz
+        p = xyz[ring, :2]
+        d = np.roll(p, -1, axis=0) - p
+        length = np.hypot(d[:, 0], d[:, 1])
+        unit = d / np.where(length > 0, length, 1.0)[:, None]
+        turn = np.einsum("ij,ij->i", np.roll(unit, 1, axis=0), unit)
+        sharp = (turn < EXCURSION_TURN_COS) & (length > 1e-9) & (np.roll(length, 1) > 1e-9)
+        if not sharp.any():
+            return []
+        corner = np.array([v in self.corner_vids for v in ring], dtype=bool)
+        faces = self.mesh.faces
+        suspects: dict[int, int] = {}  # segment -> face
+        for i in np.flatnonzero(sharp & ~corner).tolist():  # at a corner the turn is the B-rep's
+            v = ring[i]
+            for k in (i, (i - 1) % n):  # the segment leaving v, the one reaching it
+                face = face_of.get(ring[k])
+                if face is None or k in suspects:
+                    continue
+                direction = faces[face].section_direction(*_uv_of(faces[face], xyz[v]))
+                if direction is not None and np.dot(direction, unit[k]) < EXCURSION_TANGENT_COS:
+                    suspects[k] = face
+        if not suspects:
+            return []
+        pieces = [(k, k + 1) for k in sorted(suspects)]
+        if stretches:
+            pieces = _clusters(sorted(suspects), n, EXCURSION_CLUSTER_GAP)
+        j_plane = int(self.topo.loops[li][0])
+        zc = float(self.topo.planes[j_plane])
+        out = []
+        for i, j in pieces:
+            inner = [k % n for k in range(i + 1, j)]
+            face = face_of.get(ring[i])
+            if face is None or corner[inner].any() or any(face_of.get(ring[k]) != face for k in inner):
+                self.stats.excursion_failures += 1  # crosses a face boundary: not traced
+                continue
+            run = self._traced_run(face, ring[i], ring[j % n], zc, j_plane)
+            if run is not None:
+                out.append((i, j, run))
+        return out
+
+    def _traced_run(self, face: int, a: int, b: int, zc: float, plane: int) -> _Run | None:
+        """The run from vertex ``a`` to vertex ``b`` of face ``face`` along the exact curve through
+        them (seeded by a trace from a), or None if the chord a-b is within budget of that curve or
+        the trace fails (counted)."""
+        xyz = self.pool.xyz
+        ev = self.mesh.faces[face]
+        uv_a = _uv_of(ev, xyz[a])
+        b_direction = ev.section_direction(*_uv_of(ev, xyz[b]))
+        if b_direction is None:
+            self.stats.excursion_failures += 1
+            return None
+        try:
+            trace = ev.trace_level(
+                *uv_a,
+                zc,
+                (float(xyz[b, 0]), float(xyz[b, 1])),
+                b_direction,
+                step=self.seg_len,
+                max_length=max(EXCURSION_MAX_TRACE_MM, 100.0 * self.seg_len),
+            )
+        except ExactFailure:
+            self.stats.excursion_failures += 1
+            return None
+        if not trace:
+            return None
+        tr = np.array(trace)
+        on_plane = np.column_stack([tr[:, :2], np.full(len(tr), xyz[a, 2])])
+        ends = np.broadcast_to(xyz[a], on_plane.shape), np.broadcast_to(xyz[b], on_plane.shape)
+        if _point_segment_distance(on_plane, *ends).max() <= CHORD_FILL * self.chord:
+            return None  # the curve stays by the chord: the segment was right
+        path = np.vstack([xyz[a, :2], tr[:, :2], xyz[b, :2]])
+        s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(path, axis=0).T))])
+        uv = np.vstack([uv_a, tr[:, 2:], ev.uv_near(tuple(xyz[b]), tuple(tr[-1, 2:]))])
+        step = 2.0 * float(np.linalg.norm(np.diff(uv, axis=0), axis=1).max())
+        n_seg = max(2, math.ceil(s[-1] / (self.seg_len * SEGMENT_FILL)))
+        return _Run(face, s, uv, step, a, b, n_seg, zc, plane, traced=True)
 
     def _seeds_toward_exact_ends(self, face: int, uv: np.ndarray, s: np.ndarray, start, end) -> np.ndarray:
         """A run's seed path moved with its ends: where an exact end lies far from its topology
@@ -505,6 +662,45 @@ class RingSampler:
                     es[key] = here[key]
         for c, key, forward in repeats:
             self.subdiv[c] = here[key] if forward else here[key][::-1]
+        ring = self._pinned_ring(cl)
+        # excursions the crossings skipped: spliced into their segments' points (which the kept
+        # triangles on those segments use too). Segments along an edge lying in the plane (their
+        # points shared with other passes over that edge) are left alone.
+        starts: dict[int, tuple[int, int]] = {}  # vertex id -> (crossing, position in its segment)
+        twice: set[int] = set()  # vertices the loop passes twice (a node on the plane)
+        for c in cl:
+            for at, v in enumerate([self.crossing(c), *self.subdiv[c]]):
+                if v in starts:
+                    twice.add(v)
+                else:
+                    starts[v] = (c, at)
+        in_plane = (topo.cross_node[cross] >= 0) & (topo.cross_node[topo.succ[cross]] >= 0)
+        face_of = {
+            v: int(self.mesh.tri_face[topo.seg_tri[c]])
+            for v, (c, _) in starts.items()
+            if v not in twice and not in_plane[pos[c]]
+        }
+        if not self.keep_crossings:
+            rings = {li: ring}
+            self._replace_excursions(rings, face_of)
+            return rings[li]
+        runs = self._excursion_runs(ring, face_of, li, stretches=False)
+        if not runs:
+            return ring
+        for (k, _, run), run_pts in zip(runs, self._sample_runs([r for *_, r in runs]), strict=True):
+            c, at = starts[ring[k]]
+            segment = [self.crossing(c), *self.subdiv[c], self.crossing(int(topo.succ[c]))]
+            if segment[at + 1] != run.end:  # the ring's next vertex is not this segment's: leave it
+                self.stats.excursion_failures += 1
+                continue
+            sub = self.subdiv[c]
+            self.subdiv[c] = sub[:at] + run_pts[1:-1] + sub[at:]
+            self.stats.excursions += 1
+        return self._pinned_ring(cl)
+
+    def _pinned_ring(self, cl: list[int]) -> list[int]:
+        """The ring of a pinned loop's crossings ``cl`` (after ``pinned_loop``): each crossing, then
+        its segment's inner points."""
         out: list[int] = []
         for c in cl:
             out.append(self.crossing(c))
@@ -599,7 +795,19 @@ class RingSampler:
                 # the run's segments shared out by length (keeps a tiny loop's minimum count)
                 n_seg = max(1, math.ceil(run.n_seg * s_[-1] / max(float(run.s[-1]), 1e-300)))
                 pieces.append(
-                    _Run(run.face, s_, uv, run.max_step, va, vb, n_seg, run.zc, run.plane, run.moved)
+                    _Run(
+                        run.face,
+                        s_,
+                        uv,
+                        run.max_step,
+                        va,
+                        vb,
+                        n_seg,
+                        run.zc,
+                        run.plane,
+                        run.moved,
+                        run.traced,
+                    )
                 )
                 owner.append(i)
         return pieces, owner
@@ -625,6 +833,12 @@ class RingSampler:
                     t = side[i] / (side[i] - side[i + 1]) if not on[i] else 0.0
                     seed = run.uv[i] + t * (run.uv[i + 1] - run.uv[i])
                     hit = self._on_iso_line(run, axis, k, float(seed[1 - axis]))
+                    # beyond the face's trim the line is crossed on the surface's extension, not on
+                    # the B-rep (past a corner of the run: tangent_features turned (-178.1, 115.6,
+                    # 106.9) had a corner 2.3 um off its faces at z = 9.9)
+                    if hit is not None and not self.mesh.faces[run.face].contains(*hit[0], tol=TRIM_TOL_MM):
+                        self.stats.outside_face_points += 1
+                        hit = None
                     if hit is not None:
                         s_at = float(run.s[i] + t * (run.s[i + 1] - run.s[i]))
                         cuts.append((s_at, hit[0], hit[1]))
@@ -673,6 +887,7 @@ class RingSampler:
         run_step = np.array([r.max_step for r in runs])
         run_z = np.array([r.zc for r in runs])
         run_plane = np.array([r.plane for r in runs], dtype=np.int64)
+        run_traced = np.array([r.traced for r in runs], dtype=bool)
 
         def solve(run_idx: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
             g = s + shift[run_idx]
@@ -723,9 +938,11 @@ class RingSampler:
                 break
             mid, mid_ok, _ = solve(ri, 0.5 * (sa + sb))
             length = np.linalg.norm(pb - pa, axis=1)
-            self._midpoints_off_the_path(run_face[ri], run_z[ri], run_step[ri], mid, mid_ok, pa, pb, length)
+            self._midpoints_off_the_path(
+                run_face[ri], run_z[ri], run_step[ri], mid, mid_ok, pa, pb, length, run_traced[ri]
+            )
             sag = np.where(mid_ok, _point_segment_distance(np.nan_to_num(mid), pa, pb), 0.0)
-            self._quarter_sags(solve, sag, mid, mid_ok, length, pending)
+            self._quarter_sags(solve, sag, mid, mid_ok, length, pending, run_traced[ri])
             bad = ((length > L) | (sag > CHORD_FILL * e)) & (length > 1e-9)
             # No exact point halfway: the plane is tangent to the surface along this segment (the
             # section degenerates to a line or a point there). Keep the segment, count it.
@@ -769,7 +986,7 @@ class RingSampler:
             # the chord's point projected on the face.
             t_new = _chord_position(np.nan_to_num(new_xyz), pa[bq], pb[bq])
             margin = 0.25 / m[seg]
-            new_ok &= (t_new > margin) & (t_new < 1.0 - margin)
+            new_ok &= ((t_new > margin) & (t_new < 1.0 - margin)) | run_traced[ri[bq]]
             if not new_ok.all():
                 miss = np.flatnonzero(~new_ok)
                 frac = (k / m[seg])[miss]
@@ -851,7 +1068,7 @@ class RingSampler:
         above = uv > box[:, [1, 3]] + tol
         return ((below | above) & chk).any(axis=1)
 
-    def _midpoints_off_the_path(self, face, zc, step, mid, mid_ok, pa, pb, length) -> None:
+    def _midpoints_off_the_path(self, face, zc, step, mid, mid_ok, pa, pb, length, traced) -> None:
         """Solve again (in place) the midpoints that the seed path put off their segment's middle.
 
         A seed path interpolated in (u, v) through a topology triangle with a corner at a pole of
@@ -867,9 +1084,12 @@ class RingSampler:
         # piece of the curve (on ec_soapbox-A turned 35 degrees about y, 0.2 mm from a 0.02 mm
         # chord): measured, it would fail the segment, then its parts, and theirs, down to 1e-7 mm
         # (1.5 million segments). So short segments' midpoints are solved again too, and dropped
-        # where they are not found (a longer segment's stays: it is counted as unchecked).
+        # where they are not found (a longer segment's stays: it is counted as unchecked). A traced
+        # run's midpoints are on the right piece wherever they project (the tip of a tongue, beyond
+        # the chord across it).
         long = length > self.chord
-        off = np.flatnonzero((~mid_ok & long) | (mid_ok & ((t < MID_OFF_PATH) | (t > 1.0 - MID_OFF_PATH))))
+        off_middle = (t < MID_OFF_PATH) | (t > 1.0 - MID_OFF_PATH)
+        off = np.flatnonzero((~mid_ok & long) | (mid_ok & off_middle & ~traced))
         if not len(off):
             return
         p, ok, _ = self._solve_from_chord(
@@ -895,7 +1115,7 @@ class RingSampler:
         t = _chord_position(np.nan_to_num(p), pa, pb)
         return p, ok & (t > 0.0) & (t < 1.0), out_uv
 
-    def _quarter_sags(self, solve, sag, mid, mid_ok, length, pending) -> None:
+    def _quarter_sags(self, solve, sag, mid, mid_ok, length, pending, traced) -> None:
         """Raise ``sag`` (in place) to the curve's distance from the chord at the quarter points of
         the segments where the midpoint alone may miss the largest one.
 
@@ -925,8 +1145,9 @@ class RingSampler:
         pts = np.nan_to_num(pts)
         # a point beyond the chord's ends belongs to the curve past a run's end (the topology path
         # overshooting a corner), not to this segment: it says nothing of the segment's distance
+        # (except on a traced run, whose points are all this segment's)
         t_q = _chord_position(pts, pa[q], pb[q])
-        ok &= (t_q > 0.0) & (t_q < 1.0)
+        ok &= ((t_q > 0.0) & (t_q < 1.0)) | traced[q]
         q_sag = np.where(ok, _point_segment_distance(pts, pa[q], pb[q]), 0.0)
         n = len(ci)
         peak = _parabola_peak(
@@ -1101,6 +1322,49 @@ def _dedupe_cyclic(vids: list[int], pool: VertexPool) -> list[int]:
     while len(out) > 1 and (out[0] == out[-1] or _close(pool.xyz[out[0]], pool.xyz[out[-1]])):
         out.pop()
     return out
+
+
+def _clusters(ks: list[int], n: int, gap: int) -> list[tuple[int, int]]:
+    """The stretches (i, j), j > i (indices modulo ``n``), from the vertex before the first to the
+    vertex after the last of each cluster of the sorted segment indices ``ks`` of a closed ring of
+    ``n`` segments, members of a cluster at most ``gap`` apart (round the ring's end too)."""
+    groups = [[ks[0]]]
+    for k in ks[1:]:
+        if k - groups[-1][-1] <= gap:
+            groups[-1].append(k)
+        else:
+            groups.append([k])
+    if len(groups) > 1 and groups[0][0] + n - groups[-1][-1] <= gap:
+        groups[0] = groups.pop() + [k + n for k in groups[0]]
+    out = [(g[0], g[-1] + 1) for g in groups]
+    # a stretch must leave one vertex of the ring out (it is traced from one end to the other)
+    return [(i, j) for i, j in out if j - i < n]
+
+
+def _splice(ring: list[int], pieces: list[tuple[int, int, list[int]]]) -> list[int]:
+    """``ring`` with the vertices strictly between ring[i] and ring[j] (indices modulo its length, j > i;
+    the pieces disjoint) replaced by ``inner``, for each (i, j, inner) of ``pieces``."""
+    n = len(ring)
+    jump = {i % n: (j % n, inner) for i, j, inner in pieces}
+    dropped = {k % n for i, j, _ in pieces for k in range(i + 1, j)}
+    start = next(k for k in range(n) if k not in dropped)
+    out: list[int] = []
+    k = start
+    while True:
+        out.append(ring[k])
+        if k in jump:
+            k, inner = jump[k]
+            out.extend(inner)
+        else:
+            k = (k + 1) % n
+        if k == start:
+            return out
+
+
+def _uv_of(ev, p: np.ndarray) -> tuple[float, float]:
+    """(u, v) of a point of face ``ev``'s surface (a global projection refined from its own result)."""
+    xyz = (float(p[0]), float(p[1]), float(p[2]))
+    return ev.uv_near(xyz, ev.uv_near(xyz, (0.0, 0.0)))
 
 
 def _close(p, q) -> bool:

@@ -84,3 +84,29 @@ def occt_section_points(solid, z: float, step: float = 0.02) -> np.ndarray:
         if sampler.IsDone():
             pts.extend(curve.Value(sampler.Parameter(i)).Coord() for i in range(1, sampler.NbPoints() + 1))
     return np.array(pts).reshape(-1, 3)
+
+
+def distance_to_faces(points: np.ndarray, solids) -> np.ndarray:
+    """Distance (mm) of each point to the nearest face of ``solids`` (their boundary: a point inside a
+    solid is not at distance 0, as ``BRepExtrema_DistShapeShape`` with the solid itself can say)."""
+    from OCP.BRep import BRep_Builder
+    from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeVertex
+    from OCP.BRepExtrema import BRepExtrema_DistShapeShape
+    from OCP.gp import gp_Pnt
+    from OCP.TopAbs import TopAbs_FACE
+    from OCP.TopExp import TopExp_Explorer
+    from OCP.TopoDS import TopoDS_Compound
+
+    faces = TopoDS_Compound()
+    builder = BRep_Builder()
+    builder.MakeCompound(faces)
+    for solid in solids:
+        exp = TopExp_Explorer(solid, TopAbs_FACE)
+        while exp.More():
+            builder.Add(faces, exp.Current())
+            exp.Next()
+    out = []
+    for p in np.asarray(points, dtype=np.float64).reshape(-1, 3):
+        vertex = BRepBuilderAPI_MakeVertex(gp_Pnt(*map(float, p))).Vertex()
+        out.append(BRepExtrema_DistShapeShape(vertex, faces).Value())
+    return np.array(out)

@@ -20,6 +20,7 @@ from tests.conftest import CORPUS
 from tests.worker.dst.meshcheck import (
     assert_slab_property,
     assert_watertight,
+    distance_to_faces,
     occt_section_points,
     ring_edges,
 )
@@ -77,12 +78,6 @@ KNOWN_PLANE_DEVIATIONS: dict[str, str] = {
         "spike into both the ring and the reference; the ring samples the face's side of it more densely "
         "than the reference does (0.009 mm)"
     ),
-    "ec_soapbox-A.stp turned (0.0, 35.0, 0.0)": (
-        "z = 0.1 and 36.1: the plane grazes a crest, and the section has a narrow tongue (0.07 mm wide, "
-        "1 mm long at z = 0.1, near x 25.8, y 41.7; 0.04 mm wide at z = 36.1): the ring stops 0.73 mm "
-        "(0.077 mm) short of its tip (OCCT's section reaches it), the reference 0.40 mm (0.006 mm); "
-        "z = 0.3: the reference's gap above"
-    ),
     "bug29241.stp": (
         "z = 266.7 (a flat face on the plane): no exact point beside the face closer than 3e-5 mm to it "
         "(a neighbour's vertex off its plane by the file's tolerance), where a fillet tangent to the face "
@@ -94,10 +89,7 @@ KNOWN_PLANE_DEVIATIONS: dict[str, str] = {
 # from it) must name exactly these planes, and appear on no other file. (None since the topology meshes
 # get node rows on horizontal ridges: bug27453's plane 87, a sliver 2.5 um below a hole's top line, was
 # one.)
-REFERENCE_GAPS: dict[str, str] = {
-    # the reference is 0.009 mm off OCCT's own section near (25.5, -35.4), where the DST ring is not
-    "ec_soapbox-A.stp turned (0.0, 35.0, 0.0)": "at 1 plane(s) (1; the largest at plane 1,",
-}
+REFERENCE_GAPS: dict[str, str] = {}
 
 
 # Parts too large for 0.2 mm layers within the triangle limit, sliced coarser so their geometry is
@@ -125,15 +117,6 @@ def _distance_to_segments(p: np.ndarray, a: np.ndarray, b: np.ndarray, k: int = 
     denom = np.maximum((ab * ab).sum(2), 1e-300)
     t = np.clip(((p[:, None, :] - sa) * ab).sum(2) / denom, 0, 1)
     return np.linalg.norm(p[:, None, :] - (sa + t[..., None] * ab), axis=2).min(axis=1)
-
-
-def _distance_to_brep(p: np.ndarray, solids) -> float:
-    from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeVertex
-    from OCP.BRepExtrema import BRepExtrema_DistShapeShape
-    from OCP.gp import gp_Pnt
-
-    vertex = BRepBuilderAPI_MakeVertex(gp_Pnt(*p)).Vertex()
-    return min(BRepExtrema_DistShapeShape(vertex, s).Value() for s in solids)
 
 
 def _check_against_exact_sections(mesh) -> None:
@@ -172,7 +155,7 @@ def _check_against_exact_sections(mesh) -> None:
         for vid in far[:: max(1, len(far) // 40)]:
             p = mesh.vertices[vid].copy()
             p[2] = zw
-            assert _distance_to_brep(p, mesh.part.solids) < RING_TOL_MM, (
+            assert distance_to_faces(p, mesh.part.solids)[0] < RING_TOL_MM, (
                 f"plane {j}: ring vertex off the B-rep"
             )
 

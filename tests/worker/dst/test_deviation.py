@@ -245,6 +245,34 @@ def test_corner_is_not_rounded_by_the_arc_correction():
     assert np.abs(span_curvatures([[dense]], chord=1e-3)).max() == 0.0
 
 
+def test_a_span_the_curvature_model_would_bow_beyond_the_chord_stays_straight():
+    """A stadium: straight sides 2 mm long between half circles of radius 100 mm, sampled at a
+    0.001 mm chord (spans of 0.894 mm on the arcs, one span per side). The circles through a side's
+    ends and their arc neighbours curve it (0.0031 /mm, within the vertex test's 4-chord margin), which
+    would bow the side 0.0015 mm: more than the sampling allows, so the side stays straight; the arcs
+    keep their correction."""
+    r, half, chord = 100.0, 1.0, 1e-3
+    step = math.sqrt(8.0 * r * chord)
+    k = int(math.ceil(math.pi * r / step))
+    t = np.linspace(-math.pi / 2, math.pi / 2, k + 1)
+    right = np.column_stack([half + r * np.cos(t), r + r * np.sin(t)])  # from (1, 0) to (1, 200)
+    left = np.column_stack([-half - r * np.cos(t), r - r * np.sin(t)])  # from (-1, 200) to (-1, 0)
+    p = np.vstack([right, left])
+    curv = span_curvatures([[p]], chord=chord)
+    seg, plane = loops_to_segments([[p]])
+    on_side = np.array([[0.0, 0.0], [0.0, 2.0 * r]])
+    mid = 0.5 * (t[1:] + t[:-1])
+    on_arc = np.column_stack([half + r * np.cos(mid), r + r * np.sin(mid)])
+    zeros = np.zeros(len(on_side), dtype=np.int64)
+    assert np.abs(SegmentSet(seg, plane, curv=curv).distance(on_side, zeros)).max() < 1e-9
+    arced = SegmentSet(seg, plane, curv=curv).distance(on_arc, np.zeros(len(on_arc), dtype=np.int64))
+    assert arced[1:-1].max() < 1e-3 * chord  # the end spans run into the sides' curvature jump
+    assert arced.max() < chord
+    # what the ends' circles alone would give the sides (the check's reason to be)
+    unchecked = span_curvatures([[p]], chord=4.0 * chord)
+    assert SegmentSet(seg, plane, curv=unchecked).distance(on_side, zeros).max() > chord
+
+
 def test_nearest_names_a_segment_at_that_distance():
     rng = np.random.default_rng(3)
     a = rng.uniform(-5, 5, (300, 2))

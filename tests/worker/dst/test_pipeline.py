@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from tests.conftest import circle_sag
-from tests.worker.dst.meshcheck import assert_slab_property, assert_watertight, ring_edges
+from tests.worker.dst.meshcheck import assert_slab_property, assert_watertight, distance_to_faces, ring_edges
 from worker.dst.params import SliceParams
 from worker.dst.pipeline import slice_step
 
@@ -90,6 +90,32 @@ def test_a_turned_hemisphere_has_its_rings_on_the_turned_sphere_and_face(make_st
     assert mesh.planes.section_z[-1] < zmax - zmin <= mesh.planes.section_z[-1] + 0.2
 
 
+@pytest.mark.parametrize("nurbs", [False, True])
+def test_a_turned_torus_is_dropped_on_its_exact_lowest_point(make_step, nurbs):
+    """A torus (R 15, r 5) turned to (-178.1, 115.6, 106.9) has its lowest point at
+    -(15 sqrt(1 - a_z^2) + 5), a the turned axis, inside its face just across the surface's seam from
+    the lowest topology node: a search bounded by the parameter box stopped on the seam, 2.2 um
+    higher, and every plane was that much off (the report's reference, with its own topology mesh,
+    missed it on the B-spline torus too). Both find it now."""
+    from scipy.spatial.transform import Rotation
+
+    from worker.dst.reference import exact_sections
+
+    angles = (-178.1, 115.6, 106.9)
+    mesh = slice_step(
+        make_step("torus", major=15.0, minor=5.0, nurbs=nurbs),
+        SliceParams(layer_height=0.2, rotate_x=angles[0], rotate_y=angles[1], rotate_z=angles[2]),
+    )
+    a = Rotation.from_euler("xyz", angles, degrees=True).apply([0.0, 0.0, 1.0])
+    lowest = -(15.0 * math.sqrt(1.0 - a[2] ** 2) + 5.0)
+    assert mesh.z_offset == pytest.approx(lowest, abs=1e-9)
+    ref = exact_sections(
+        mesh.part, mesh.planes.section_z[:2], chord=1e-3, segment_length=2.0, deflection=0.01, helper=False
+    )
+    assert ref.zmin == pytest.approx(lowest, abs=1e-9)
+    assert ref.zmax == pytest.approx(-lowest, abs=1e-9)
+
+
 def test_cone_rings_follow_the_linear_radius(make_step):
     mesh = slice_step(make_step("cone", radius=10.0, height=20.0), SliceParams(layer_height=0.25))
     assert_watertight(mesh)
@@ -118,23 +144,36 @@ def test_torus_lying_flat_has_two_exact_circles_per_plane(make_step):
     assert sag.max() <= 0.01 + 1e-6
 
 
-def test_tilted_tube_rings_lie_on_the_brep(make_step):
-    from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeVertex
-    from OCP.BRepExtrema import BRepExtrema_DistShapeShape
-    from OCP.gp import gp_Pnt
+def _ring_points_in_part(mesh, idx: np.ndarray) -> np.ndarray:
+    """Ring vertices ``idx`` in the (turned) part's own coordinates, at their planes' exact heights."""
+    p = mesh.vertices[idx].copy()
+    p[:, 2] = mesh.z_offset + mesh.planes.section_z[mesh.vertex_plane[idx]]
+    return p
 
+
+def test_tilted_tube_rings_lie_on_the_brep(make_step):
     path = make_step("tube", tilt_deg=30.0)
     mesh = slice_step(path, SliceParams(layer_height=0.3))
     assert_watertight(mesh)
     assert_slab_property(mesh)
-    shell = mesh.part.solids[0]
     ring = np.flatnonzero(mesh.vertex_plane >= 0)
-    rng = np.random.default_rng(1)
-    for i in rng.choice(ring, size=60, replace=False):
-        p = mesh.vertices[i] + np.array([0, 0, mesh.z_offset])
-        p[2] = mesh.z_offset + mesh.planes.section_z[mesh.vertex_plane[i]]
-        dist = BRepExtrema_DistShapeShape(BRepBuilderAPI_MakeVertex(gp_Pnt(*p)).Vertex(), shell)
-        assert dist.Value() < EXACT_TOL
+    pick = np.random.default_rng(1).choice(ring, size=60, replace=False)
+    assert distance_to_faces(_ring_points_in_part(mesh, pick), mesh.part.solids).max() < EXACT_TOL
+
+
+def test_a_section_crossing_a_c0_line_just_past_its_face_gets_no_corner_there(make_step):
+    """A B-spline face that is only C0 along a knot line gets a ring corner where a section crosses
+    that line inside the face. Turned to (-178.1, 115.6, 106.9), tangent_features' converted sphere
+    has a section crossing such a line 2.3 um beyond the face's edge, past the run's corner on that
+    edge: the point lay on the surface's extension, 2.3 um off the B-rep (a there-and-back of the
+    ring). Every ring vertex at that plane lies on the part's faces."""
+    mesh = slice_step(
+        make_step("tangent_features"),
+        SliceParams(layer_height=0.2, rotate_x=-178.1, rotate_y=115.6, rotate_z=106.9),
+    )
+    assert mesh.stats["kink_corners"] > 0
+    ring = np.flatnonzero(mesh.vertex_plane == 49)
+    assert distance_to_faces(_ring_points_in_part(mesh, ring), mesh.part.solids).max() < EXACT_TOL
 
 
 def test_step_on_a_plane_is_reported_and_meshed(make_step):
@@ -334,6 +373,68 @@ def test_a_plane_just_below_the_top_of_a_tilted_rim_gets_its_loop(make_step, mon
     assert on_cap.any() and on_wall.any()
     monkeypatch.setattr("worker.dst.ridges.snap_local_extremes", lambda mesh, planes: 0)
     assert len(lens(slice_step(path, params))) == 0
+
+
+def _polyline_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    """Distance (mm) from the point ``p`` to the nearest of the segments a-b (all in x, y)."""
+    ab = b - a
+    t = np.clip(((p - a) * ab).sum(1) / np.maximum((ab * ab).sum(1), 1e-300), 0.0, 1.0)
+    return float(np.linalg.norm(a + t[:, None] * ab - p, axis=1).min())
+
+
+def test_a_plane_grazing_a_tilted_ridge_reaches_the_tip_of_its_tongue(make_step):
+    """A rounded edge (radius 0.3 mm) turned to the top and tilted 1 degree is a ridge whose crest
+    line is not level: a plane crossing it just below cuts a narrow tongue whose tip is where the
+    crest line meets the plane (closed form below: a cylinder's section ellipse ends on its top
+    generator). The topology mesh's cut turns back short of the tip, and the segment joining the
+    tongue's two sides passed its midpoint test on either side: the ring stopped 0.050 mm from the
+    tip, twice the chord budget, and the report's reference stopped short too. Every tip must lie
+    within the budget of its plane's ring, and of the report's exact reference within the
+    reference's own; the report then finds the ring within budget at every plane."""
+    from scipy.spatial.transform import Rotation
+
+    from worker.dst.reference import exact_sections
+    from worker.dst.report import build_report
+
+    r, roll, tilt = 0.3, 45.0, 1.0
+    # analytic surfaces (the tongue is resolved on B-spline ones from the start)
+    path = make_step("filleted_ridge", radius=r, nurbs=False)
+    params = SliceParams(layer_height=0.2, rotate_x=roll, rotate_y=tilt)
+    mesh = slice_step(path, params)
+    assert_watertight(mesh)
+    assert_slab_property(mesh)
+    assert mesh.stats["excursions"] > 0
+
+    turn = Rotation.from_euler("xyz", [roll, tilt, 0.0], degrees=True)  # fixed axes, x first
+    axis = turn.apply([1.0, 0.0, 0.0])  # the fillet's axis, through (x, 5 - r, 5 - r) unturned
+    up = np.array([0.0, 0.0, 1.0]) - axis[2] * axis
+    up /= np.linalg.norm(up)  # from the axis to the crest line, within the fillet's quarter turn:
+    assert np.dot(up, turn.apply([0.0, 1.0, 1.0]) / math.sqrt(2.0)) > math.cos(math.radians(45.0))
+    crest = turn.apply([0.0, 5.0 - r, 5.0 - r]) + r * up
+    section = exact_sections(
+        mesh.part, mesh.planes.section_z, chord=1e-3, segment_length=2.0, deflection=0.005, helper=False
+    )
+    edges, plane_of = ring_edges(mesh)
+    tips = 0
+    for j, h in enumerate(mesh.planes.section_z):
+        t = (mesh.z_offset + float(h) - crest[2]) / axis[2]
+        if abs(t) > 19.5:  # the crest line meets this plane beyond the block's ends (x = -20 .. 20)
+            continue
+        tip = (crest + t * axis)[:2]
+        e = edges[plane_of == j]
+        assert _polyline_distance(tip, mesh.vertices[e[:, 0], :2], mesh.vertices[e[:, 1], :2]) <= 0.025 + 1e-6
+        ref = section.loops[j]
+        a = np.concatenate(ref)
+        b = np.concatenate([np.roll(lp, -1, axis=0) for lp in ref])
+        assert _polyline_distance(tip, a, b) <= 1e-3 + 1e-6
+        tips += 1
+    assert tips >= 3
+
+    report = build_report(mesh.part, params, file_name=str(path), dst=mesh, baselines=())
+    assert not [w for w in report.warnings if "reference misses part of the section" in w]
+    (dst,) = report.meshes
+    assert max(layer.chord_dev for layer in dst.layers) <= 0.025 + report.reference.resolution_mm
+    assert max(layer.vertex_dev for layer in dst.layers) <= 1e-4
 
 
 @pytest.mark.parametrize(

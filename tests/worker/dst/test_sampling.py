@@ -56,7 +56,9 @@ def test_midpoints_the_seed_path_left_off_their_segment_are_solved_from_the_chor
     the face named) is counted, not passed silently; a midpoint in its segment's middle is left as
     it is. A segment within the chord budget whatever its arc has an off-middle midpoint solved
     again too (measured where it was, on another piece of the curve, it would fail the segment and
-    its parts without end: ec_soapbox-A turned 35 degrees); one not found is dropped, not counted."""
+    its parts without end: ec_soapbox-A turned 35 degrees); one not found is dropped, not counted.
+    A run traced along the exact curve (the tip of a tongue beyond the chord across it) keeps its
+    midpoints wherever they project."""
     sampler, cone, base = cone_sampler
     a0, a1 = 0.3, 1.1  # a 5.8 mm chord of the 7.5 mm circle (sag 0.6 mm)
     pa, pb = _on_circle(a0), _on_circle(a1)
@@ -71,6 +73,7 @@ def test_midpoints_the_seed_path_left_off_their_segment_are_solved_from_the_chor
         (cone, pa, True, short_b),
         (base, pa, True, short_b),
         (cone, _on_circle(a0 + 0.0005), True, short_b),
+        (cone, near_end, True, pb),  # traced
     ]
     face = np.array([c[0] for c in cases])
     mid = np.array([c[1] for c in cases])
@@ -80,7 +83,15 @@ def test_midpoints_the_seed_path_left_off_their_segment_are_solved_from_the_chor
     length = np.linalg.norm(seg_b - seg_a, axis=1)
     before = sampler.stats.unchecked_segments
     sampler._midpoints_off_the_path(
-        face, np.full(len(cases), Z), np.full(len(cases), 1.0), mid, mid_ok, seg_a, seg_b, length
+        face,
+        np.full(len(cases), Z),
+        np.full(len(cases), 1.0),
+        mid,
+        mid_ok,
+        seg_a,
+        seg_b,
+        length,
+        np.arange(len(cases)) == len(cases) - 1,
     )
     # the first two: on the exact circle, at the chord's middle (the arc's midpoint)
     for i in (0, 1):
@@ -98,6 +109,9 @@ def test_midpoints_the_seed_path_left_off_their_segment_are_solved_from_the_chor
     assert mid_ok[4] and math.atan2(mid[4, 1], mid[4, 0]) == pytest.approx(a0 + 0.0005, abs=1e-7)
     assert math.hypot(mid[4, 0], mid[4, 1]) == pytest.approx(R_Z, abs=1e-6)
     assert not mid_ok[5]
+    # traced: untouched
+    assert mid_ok[7]
+    np.testing.assert_array_equal(mid[7], near_end)
 
 
 def test_a_crossing_whose_root_lies_beyond_its_face_is_dropped_from_the_ring(tmp_path):
@@ -131,3 +145,78 @@ def test_a_crossing_whose_root_lies_beyond_its_face_is_dropped_from_the_ring(tmp
     assert r.min() > r_in - 1e-6, r.min() - r_in
     assert r.max() < r_in + thick + 1e-6, r.max() - r_in - thick
     assert mesh.stats["off_trim_crossings"] >= 2  # dropped, and counted
+
+
+def _tangent(angle: float) -> tuple[float, float]:
+    return (-math.sin(angle), math.cos(angle))  # counter-clockwise: the cone's material on the left
+
+
+def test_a_trace_follows_the_section_curve_in_the_loops_direction(cone_sampler):
+    """``FaceEval.trace_level`` walks the exact section (here the circle of radius 7.5) in the
+    loops' direction, material on the left (counter-clockwise round the cone), to a target ahead
+    of it; a target behind it is reached the long way round; a target whose curve runs the other
+    way (the far side of a narrow tongue, as near but not on this side) is never taken for it."""
+    from worker.dst.exact import ExactFailure
+
+    sampler, cone, _ = cone_sampler
+    ev = sampler.mesh.faces[cone]
+    u, v = ev.uv_near(tuple(_on_circle(0.2)), (0.0, 0.0))
+    assert ev.section_direction(u, v) == pytest.approx(_tangent(0.2), abs=1e-9)
+
+    def angles(target: float, step: float = 1.0, direction=None) -> np.ndarray:
+        pts = ev.trace_level(
+            u,
+            v,
+            Z,
+            tuple(_on_circle(target)[:2]),
+            direction or _tangent(target),
+            step=step,
+            max_length=60.0,
+        )
+        xy = np.array(pts)[:, :2]
+        assert np.hypot(xy[:, 0], xy[:, 1]) == pytest.approx(R_Z, abs=1e-9)  # on the section
+        for x, y, pu, pv in pts:  # and the (u, v) given is the point's
+            assert ev.point(pu, pv) == pytest.approx((x, y, Z), abs=1e-9)
+        return np.unwrap(np.concatenate([[0.2], np.arctan2(xy[:, 1], xy[:, 0])]))[1:]
+
+    ahead = angles(1.4, step=0.3)
+    assert (np.diff(ahead) > 0).all() and 0.2 < ahead[0] and ahead[-1] < 1.4
+    assert R_Z * (1.4 - ahead[-1]) <= 0.3 + 1e-9  # the target within the last step
+    behind = angles(0.1)
+    assert (np.diff(behind) > 0).all() and behind[-1] > 0.1 + 2 * math.pi - 1.0 / R_Z - 1e-9
+    with pytest.raises(ExactFailure, match="did not arrive"):
+        angles(1.4, direction=tuple(-c for c in _tangent(1.4)))
+
+
+def test_a_trace_stops_where_its_face_ends(tmp_path):
+    """A trace may not leave its face's trim (beyond it lies the surface's extension, not the
+    B-rep): on the side x = 5 of a 10 mm cube the section z = 2 is the line y = -5 .. 5."""
+    from build123d import Box
+    from OCP.BRepAdaptor import BRepAdaptor_Surface
+
+    from worker.dst.exact import ExactFailure, FaceEval
+
+    face = Box(10, 10, 10).faces().sort_by_distance((5, 0, 0))[0]
+    ev = FaceEval(BRepAdaptor_Surface(face.wrapped))
+    u, v = ev.uv_near((5.0, -4.0, 2.0), (0.0, 0.0))
+    direction = ev.section_direction(u, v)
+    assert direction == pytest.approx((0.0, 1.0), abs=1e-12)  # material (x < 5) on the left
+    pts = ev.trace_level(u, v, 2.0, (5.0, 4.0), direction, step=0.5, max_length=20.0)
+    xy = np.array(pts)[:, :2]
+    np.testing.assert_allclose(xy[:, 0], 5.0, atol=1e-12)
+    assert (np.diff(xy[:, 1]) > 0).all() and xy[0, 1] > -4.0 and 3.5 <= xy[-1, 1] < 4.0
+    with pytest.raises(ExactFailure, match="left the face"):
+        ev.trace_level(u, v, 2.0, (5.0, 7.0), direction, step=0.5, max_length=20.0)
+
+
+def test_stretches_to_trace_again_cluster_round_the_ring_and_replace_its_vertices():
+    from worker.dst.sampling import _clusters, _splice
+
+    # segments 3, 4 and 10 are one stretch (gap 6 <= 8), 30 another; 60 joins 3 round the end
+    assert _clusters([3, 4, 10, 30], 64, 8) == [(3, 11), (30, 31)]
+    assert _clusters([3, 4, 10, 60], 64, 8) == [(60, 75)]
+    assert _clusters([0, 5], 6, 8) == []  # a stretch must leave a vertex out
+    ring = list(range(10))
+    # vertices 3, 4 replaced by 100, 101; 9 and 0 (the stretch 8 -> 11 = 1 wraps) by 200
+    assert _splice(ring, [(2, 5, [100, 101]), (8, 11, [200])]) == [1, 2, 100, 101, 5, 6, 7, 8, 200]
+    assert _splice(ring, [(4, 5, [7])]) == [0, 1, 2, 3, 4, 7, 5, 6, 7, 8, 9]
