@@ -29,7 +29,7 @@ from app import schemas as S
 from app.page import INDEX_HTML
 from worker.dst.baselines import parse_baselines
 from worker.dst.errors import InvalidParameters
-from worker.dst.params import ROTATION_FIELDS, SliceParams
+from worker.dst.params import ROTATION_FIELDS, SLICING_FIELDS, SliceParams
 from worker.dst.sniff import SNIFF_BYTES, sniff_step
 from worker.settings import Settings, get_settings
 from worker.storage import ARTIFACTS, ArtifactStore, make_artifact_store
@@ -326,18 +326,9 @@ class UploadForm:
         rotate_z: RotateField = None,
         baselines: BaselinesField = None,
     ):
+        fields = locals()  # one form field per slicing field (FastAPI needs them in the signature)
         self.file = file
-        self.values = {
-            "layer_height": layer_height,
-            "first_layer_height": first_layer_height,
-            "mode": mode,
-            "segment_length": segment_length,
-            "chord_error": chord_error,
-            "target_slicer": target_slicer,
-            "rotate_x": rotate_x,
-            "rotate_y": rotate_y,
-            "rotate_z": rotate_z,
-        }
+        self.values = {name: fields[name] for name in SLICING_FIELDS}
         self.baselines = baselines
 
     def params(self, *, default_baselines: str | None = None) -> dict:

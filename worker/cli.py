@@ -42,20 +42,6 @@ def _add_slicing_options(p: argparse.ArgumentParser) -> None:
         )
 
 
-# the options above, as SliceParams and the API call them
-_SLICING_FIELDS = (
-    "layer_height",
-    "first_layer_height",
-    "mode",
-    "segment_length",
-    "chord_error",
-    "target_slicer",
-    "rotate_x",
-    "rotate_y",
-    "rotate_z",
-)
-
-
 def _add_report_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--baselines",
@@ -120,9 +106,9 @@ def _add_report_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def _params(args: argparse.Namespace):
-    from worker.dst.params import SliceParams  # noqa: PLC0415 - keep `dst --help` fast
+    from worker.dst.params import SLICING_FIELDS, SliceParams  # noqa: PLC0415 - keep `dst --help` fast
 
-    return SliceParams.parse(**{name: getattr(args, name) for name in _SLICING_FIELDS})
+    return SliceParams.parse(**{name: getattr(args, name) for name in SLICING_FIELDS})
 
 
 def _check_output(path: str | None) -> None:
@@ -313,12 +299,13 @@ def _cmd_remote(args: argparse.Namespace) -> int:
     import httpx  # noqa: PLC0415
 
     from app.client import DstClient, DstError  # noqa: PLC0415
+    from worker.dst.params import SLICING_FIELDS  # noqa: PLC0415
 
     if not os.path.isfile(args.input):
         raise _UserError(f"input file not found: {args.input}")
     for path in (args.output, args.report, args.html):
         _check_output(path)
-    params = {name: getattr(args, name) for name in _SLICING_FIELDS} | {"baselines": args.baselines}
+    params = {name: getattr(args, name) for name in SLICING_FIELDS} | {"baselines": args.baselines}
     try:
         with DstClient(args.server) as c:
             job = c.submit(args.input, **params)

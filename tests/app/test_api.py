@@ -100,6 +100,32 @@ def test_the_print_orientation_is_a_job_parameter(api):
     assert api.queued == [plain["id"], turned.json()["id"]]
 
 
+def test_every_slicing_field_is_a_form_field_and_a_job_parameter_with_the_cores_bounds(api):
+    """The API's form and job schema are written out for FastAPI and the OpenAPI spec; they must
+    carry every field of the core's SliceParams, with the same bounds (a new field left out would
+    be silently dropped, a looser bound accepted here and refused by the worker)."""
+    import inspect
+
+    from app.main import UploadForm
+    from app.schemas import JobParams
+    from worker.dst.params import SLICING_FIELDS, SliceParams
+
+    assert set(SLICING_FIELDS) <= set(inspect.signature(UploadForm).parameters)
+    assert set(JobParams.model_fields) == {*SLICING_FIELDS, "baselines"}
+
+    def bounds(field) -> tuple:
+        return tuple(
+            next((getattr(m, k) for m in field.metadata if hasattr(m, k)), None) for k in ("ge", "le")
+        )
+
+    for name in SLICING_FIELDS:
+        assert bounds(JobParams.model_fields[name]) == bounds(SliceParams.model_fields[name]), name
+    # every one of them reaches the job
+    job = upload(api, **{"first_layer_height": 0.3, "target_slicer": "prusa", "rotate_z": 15}).json()
+    assert set(job["params"]) == {*SLICING_FIELDS, "baselines"}
+    assert job["params"]["first_layer_height"] == 0.3 and job["params"]["rotate_z"] == 15
+
+
 def _without_rotation(params: dict) -> dict:
     return {k: v for k, v in params.items() if not k.startswith("rotate_")}
 

@@ -94,6 +94,11 @@ class SliceParams(BaseModel):
             raise InvalidParameters(describe_validation_error(exc)) from None
 
 
+# The slicing fields by name, in the model's order: what every front end (the CLI's options, the API's
+# form fields and job schema) passes through to ``SliceParams.parse``.
+SLICING_FIELDS: tuple[str, ...] = tuple(SliceParams.model_fields)
+
+
 def describe_validation_error(exc: ValidationError) -> str:
     """One line a user can act on: 'layer_height must be between 0.01 and 2 mm, got 50'."""
     parts = []
