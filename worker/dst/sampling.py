@@ -412,11 +412,28 @@ class RingSampler:
         if not found:
             return
         by_loop: dict[int, list[tuple[int, int, list[int]]]] = {}
-        for (li, i, j, _), run_pts in zip(found, self._sample_runs([f[3] for f in found]), strict=True):
-            by_loop.setdefault(li, []).append((i, j, run_pts[1:-1]))
+        for (li, i, j, _), run_pts in zip(found, self._sample_traced([f[3] for f in found]), strict=True):
+            if run_pts is not None:
+                by_loop.setdefault(li, []).append((i, j, run_pts[1:-1]))
         for li, pieces in by_loop.items():
             rings[li] = _splice(rings[li], pieces)
-        self.stats.excursions += len(found)
+            self.stats.excursions += len(pieces)
+
+    def _sample_traced(self, runs: list[_Run]) -> list[list[int] | None]:
+        """``_sample_runs`` of traced runs, None for one that cannot meet the budget (counted in
+        ``excursion_failures``; its ring keeps the points it had): the excursion check may improve a
+        ring, never fail a build that would otherwise succeed."""
+        try:
+            return self._sample_runs(runs)
+        except TessellationError:
+            out: list[list[int] | None] = []
+            for run in runs:
+                try:
+                    out.append(self._sample_runs([run])[0])
+                except TessellationError:
+                    self.stats.excursion_failures += 1
+                    out.append(None)
+            return out
 
     def _loop_runs(self, li: int, *, min_seg: int) -> list[_Run]:
         """The runs of a free loop: the pieces of its section between consecutive corners."""
@@ -687,7 +704,9 @@ class RingSampler:
         runs = self._excursion_runs(ring, face_of, li, stretches=False)
         if not runs:
             return ring
-        for (k, _, run), run_pts in zip(runs, self._sample_runs([r for *_, r in runs]), strict=True):
+        for (k, _, run), run_pts in zip(runs, self._sample_traced([r for *_, r in runs]), strict=True):
+            if run_pts is None:
+                continue
             c, at = starts[ring[k]]
             segment = [self.crossing(c), *self.subdiv[c], self.crossing(int(topo.succ[c]))]
             if segment[at + 1] != run.end:  # the ring's next vertex is not this segment's: leave it

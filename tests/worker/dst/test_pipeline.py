@@ -437,6 +437,28 @@ def test_a_plane_grazing_a_tilted_ridge_reaches_the_tip_of_its_tongue(make_step)
     assert max(layer.vertex_dev for layer in dst.layers) <= report.reference.resolution_mm
 
 
+def test_an_excursion_that_cannot_be_sampled_leaves_its_ring_as_it_was(make_step, monkeypatch):
+    """The excursion check may improve a ring, never fail a build: a traced run that cannot meet the
+    budget (simulated) is counted and its ring keeps its points; the mesh is closed as before."""
+    from worker.dst.errors import TessellationError
+    from worker.dst.sampling import RingSampler
+
+    path = make_step("filleted_ridge", radius=0.3, nurbs=False)
+    params = SliceParams(layer_height=0.2, rotate_x=45.0, rotate_y=1.0)
+    real = RingSampler._sample_runs
+
+    def refuse_traced(self, runs):
+        if any(r.traced for r in runs):
+            raise TessellationError("section curves cannot meet the chord budget (simulated)")
+        return real(self, runs)
+
+    monkeypatch.setattr(RingSampler, "_sample_runs", refuse_traced)
+    mesh = slice_step(path, params)
+    assert mesh.stats["excursions"] == 0 and mesh.stats["excursion_failures"] > 0
+    assert_watertight(mesh)
+    assert_slab_property(mesh)
+
+
 @pytest.mark.parametrize(
     ("kind", "radius", "perimeter"),
     [
