@@ -52,13 +52,34 @@ class FaceEval:
     adaptor : BRepAdaptor_Surface of the face (location applied)
     """
 
-    __slots__ = ("ad", "face", "u0", "u1", "v0", "v1", "outward", "_p", "_du", "_dv", "_sas", "_fclass")
+    __slots__ = (
+        "ad",
+        "face",
+        "u0",
+        "u1",
+        "v0",
+        "v1",
+        "bounded",
+        "outward",
+        "_p",
+        "_du",
+        "_dv",
+        "_sas",
+        "_fclass",
+    )
 
     def __init__(self, adaptor: BRepAdaptor_Surface):
         self.ad = adaptor
         self.face = adaptor.Face()
         self.u0, self.u1 = adaptor.FirstUParameter(), adaptor.LastUParameter()
         self.v0, self.v1 = adaptor.FirstVParameter(), adaptor.LastVParameter()
+        # whether a point beyond the (u, v) box in u (in v) is certainly off the face: not in a
+        # periodic direction (parameters wrap), nor along a sphere's meridian (v past a pole is still
+        # on the sphere); elsewhere it lies on the surface's extension, not on the B-rep
+        self.bounded = (
+            not adaptor.IsUPeriodic(),
+            not adaptor.IsVPeriodic() and adaptor.GetType() != GeomAbs_Sphere,
+        )
         # Pu x Pv times this is the outward normal (the adaptor evaluates the surface, whatever the
         # face's orientation)
         self.outward = -1.0 if self.face.Orientation() == TopAbs_REVERSED else 1.0
@@ -152,19 +173,9 @@ class FaceEval:
             if abs(along) < WALK_TOL_MM:
                 return p.X(), p.Y(), u, v
             h = math.copysign(min(abs(along), step), along) / speed
-            u, v = u + su * h, v + sv * h
-            for _ in range(30):
-                self.ad.D1(u, v, p, du, dv)
-                g = p.Z() - c
-                if abs(g) < 1e-12:
-                    break
-                gu, gv = du.Z(), dv.Z()
-                n2 = gu * gu + gv * gv
-                if n2 < 1e-24:
-                    raise ExactFailure("flat spot on the walk")
-                u, v = u - g * gu / n2, v - g * gv / n2
-            else:
-                raise ExactFailure("the walk lost the section curve")
+            u, v = self._onto_level(u + su * h, v + sv * h, c)
+            if u is None:
+                raise ExactFailure("the walk lost the section curve (or met a flat spot)")
             if not (self.u0 <= u <= self.u1 and self.v0 <= v <= self.v1):
                 raise ExactFailure("the walk left the surface")
         raise ExactFailure("the walk did not arrive")
@@ -208,9 +219,7 @@ class FaceEval:
         """
         p, du, dv = self._p, self._du, self._dv
         tx, ty = target
-        # beyond the box in a periodic direction, or past a sphere's pole, is still on the surface
-        box_u = not self.ad.IsUPeriodic()
-        box_v = not self.ad.IsVPeriodic() and self.ad.GetType() != GeomAbs_Sphere
+        box_u, box_v = self.bounded
         d = self.section_direction(u, v)
         if d is None:
             raise ExactFailure("the section curve has no direction here")

@@ -35,7 +35,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 from OCP.collections import Array1_double
-from OCP.GeomAbs import GeomAbs_C1, GeomAbs_Sphere
+from OCP.GeomAbs import GeomAbs_C1
 from OCP.gp import gp_Pnt, gp_Vec
 
 from worker.dst.analytic import evaluator
@@ -221,18 +221,11 @@ class RingSampler:
         self._ads = [f.ad for f in mesh.faces]
         self._evals = [evaluator(ad) for ad in self._ads]
         self._analytic = np.array([e is not None for e in self._evals], dtype=bool)
-        # each face's (u, v) box, and whether a point beyond it in u or v is certainly off the face: not
-        # in a periodic direction (parameters wrap), nor along a sphere's meridian (v past a pole is
-        # still on the sphere); elsewhere it lies on the surface's extension, not on the B-rep
+        # each face's (u, v) box, and whether a point beyond it in u or v is certainly off the face
+        # (``FaceEval.bounded``)
         fs = mesh.faces
         self._uv_box = np.array([(f.u0, f.u1, f.v0, f.v1) for f in fs], dtype=np.float64).reshape(-1, 4)
-        self._box_checked = np.array(
-            [
-                (not f.ad.IsUPeriodic(), not f.ad.IsVPeriodic() and f.ad.GetType() != GeomAbs_Sphere)
-                for f in fs
-            ],
-            dtype=bool,
-        ).reshape(-1, 2)
+        self._box_checked = np.array([f.bounded for f in fs], dtype=bool).reshape(-1, 2)
         uv = mesh.tri_uv
         # (u, v) size of each topology triangle: the scale of a Newton step from a seed
         self.tri_uv_scale = np.max(np.linalg.norm(uv - np.roll(uv, 1, axis=1), axis=2), axis=1) + 1e-12
@@ -516,7 +509,7 @@ class RingSampler:
             return []
         corner = np.array([v in self.corner_vids for v in ring], dtype=bool)
         faces = self.mesh.faces
-        suspects: dict[int, int] = {}  # segment -> face
+        suspects: set[int] = set()  # segments against the curve's direction at an end
         for i in np.flatnonzero(sharp & ~corner).tolist():  # at a corner the turn is the B-rep's
             v = ring[i]
             for k in (i, (i - 1) % n):  # the segment leaving v, the one reaching it
@@ -525,12 +518,11 @@ class RingSampler:
                     continue
                 direction = faces[face].section_direction(*_uv_of(faces[face], xyz[v]))
                 if direction is not None and np.dot(direction, unit[k]) < EXCURSION_TANGENT_COS:
-                    suspects[k] = face
+                    suspects.add(k)
         if not suspects:
             return []
-        pieces = [(k, k + 1) for k in sorted(suspects)]
-        if stretches:
-            pieces = _clusters(sorted(suspects), n, EXCURSION_CLUSTER_GAP)
+        ks = sorted(suspects)
+        pieces = _clusters(ks, n, EXCURSION_CLUSTER_GAP) if stretches else [(k, k + 1) for k in ks]
         j_plane = int(self.topo.loops[li][0])
         zc = float(self.topo.planes[j_plane])
         out = []
