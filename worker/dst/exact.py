@@ -257,11 +257,10 @@ class FaceEval:
                 h *= 0.5
                 if h < TRACE_MIN_STEP_MM:
                     raise ExactFailure("a cusp on the trace")
-            left = (box_u and not self.u0 <= un <= self.u1) or (box_v and not self.v0 <= vn <= self.v1)
-            if left or not self.contains(un, vn, tol=1e-6):
-                if ahead and dist <= 2.0 * h:
-                    return out  # a target on the face's edge, which this step passes
-                raise ExactFailure(f"the trace left the face (its {'parameter range' if left else 'trim'})")
+            if (box_u and not self.u0 <= un <= self.u1) or (box_v and not self.v0 <= vn <= self.v1):
+                raise ExactFailure("the trace left the face (its parameter range)")
+            if not self.contains(un, vn, tol=1e-6):
+                raise ExactFailure("the trace left the face (its trim)")
             xn, yn = self.point(un, vn)[:2]
             length += math.hypot(xn - x, yn - y)
             u, v, x, y, d = un, vn, xn, yn, dn

@@ -31,6 +31,7 @@ iteration), which keeps the Python overhead per ring vertex to a few microsecond
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -79,6 +80,8 @@ EXCURSION_TURN_COS = 0.5
 EXCURSION_TANGENT_COS = 0.5
 # a trace from one end of a segment to the other gives up after this many mm (or 100 segment lengths)
 EXCURSION_MAX_TRACE_MM = 50.0
+# a ring turning back this sharply at a vertex outside its face's trim has a spur there
+SPUR_TURN_COS = -0.9
 # segments against the curve's direction this few ring positions apart are one stretch to re-trace
 EXCURSION_CLUSTER_GAP = 32
 
@@ -142,6 +145,7 @@ class SamplingStats:
     outside_face_points: int = 0  # points beyond a face's trim (a nearly tangent edge), dropped
     excursions: int = 0  # segments re-sampled along an excursion of the curve they skipped
     excursion_failures: int = 0  # segments suspected of skipping one that could not be traced
+    spur_vertices: int = 0  # ring vertices dropped as tips of spurs onto a face's extension
     reordered_crossings: int = 0  # crossings put at the section point nearest them (see _solve_crossing)
     kink_corners: int = 0  # corners placed where a section crosses a C0 line inside a face
     quarter_checks: int = 0  # segments also checked at their quarter points (see _quarter_sags)
@@ -396,7 +400,10 @@ class RingSampler:
 
     def _replace_excursions(self, rings: dict[int, list[int]], face_of: dict[int, int]) -> None:
         """Re-sample (in place, all in one batch) the stretches of these rings that skip the exact
-        curve's excursions (``_excursion_runs``); their vertices may be dropped."""
+        curve's excursions (``_excursion_runs``); their vertices may be dropped. Spurs onto a face's
+        extension are dropped first (``_without_spurs``)."""
+        for li, ring in rings.items():
+            rings[li] = self._without_spurs(ring, face_of)
         found = [
             (li, i, j, run)
             for li, ring in rings.items()
@@ -409,8 +416,72 @@ class RingSampler:
             if run_pts is not None:
                 by_loop.setdefault(li, []).append((i, j, run_pts[1:-1]))
         for li, pieces in by_loop.items():
-            rings[li] = _splice(rings[li], pieces)
-            self.stats.excursions += len(pieces)
+            ring = rings[li]
+            while pieces:  # each piece must keep the curve its dropped vertices lie on
+                new = _splice(ring, pieces)
+                lost = [pc for pc in pieces if self._loses_curve(ring, pc, new, face_of)]
+                if not lost:
+                    break
+                self.stats.excursion_failures += len(lost)
+                pieces = [pc for pc in pieces if pc not in lost]
+            if pieces:
+                rings[li] = new
+                self.stats.excursions += len(pieces)
+
+    def _loses_curve(
+        self, ring: list[int], piece: tuple[int, int, list[int]], new: list[int], face_of: dict[int, int]
+    ) -> bool:
+        """Whether ``new`` (``ring`` with its pieces re-sampled) passes farther than the budget from a
+        vertex the piece drops that lies on its face (an exact point of the curve): a trace that
+        stopped short of a narrow excursion the ring had reached (boxed_sphere turned: 6 um)."""
+        i, j, _ = piece
+        n = len(ring)
+        kept = set(new)
+        xyz = self.pool.xyz
+        dropped = []
+        for k in range(i + 1, j):
+            v = ring[k % n]
+            face = face_of.get(v)
+            if v in kept or face is None:
+                continue
+            ev = self.mesh.faces[face]
+            if ev.contains(*_uv_of(ev, xyz[v]), tol=1e-6):
+                dropped.append(v)
+        if not dropped:
+            return False
+        p = xyz[new, :2]
+        seg = np.stack([p, np.roll(p, -1, axis=0)], axis=1)
+        return any(_min_distance_to_segments(xyz[[v], :2], seg) > self.chord for v in dropped)
+
+    def _without_spurs(self, ring: list[int], face_of: dict[int, int]) -> list[int]:
+        """``ring`` without the tips of its spurs onto a face's extension, tip after tip: vertices
+        where it turns back (``SPUR_TURN_COS``) that lie outside their face's trim. Out of order, a
+        finer topology mesh's crossings past a face's edge have Newton put points on the face's
+        surface beyond it (M6-1x12-countersunk-screw turned: 0.3 mm out and back, 0.05 mm off the
+        B-rep); no section of the B-rep turns back there."""
+        xyz = self.pool.xyz
+        faces = self.mesh.faces
+        while len(ring) > MIN_LOOP_VERTICES:
+            p = xyz[ring, :2]
+            d = np.roll(p, -1, axis=0) - p
+            length = np.hypot(d[:, 0], d[:, 1])
+            unit = d / np.where(length > 0, length, 1.0)[:, None]
+            back = np.einsum("ij,ij->i", np.roll(unit, 1, axis=0), unit) < SPUR_TURN_COS
+            tips = []
+            for i in np.flatnonzero(back).tolist():
+                v = ring[i]
+                face = face_of.get(v, face_of.get(ring[i - 1]))
+                if face is None or v in self.corner_vids:
+                    continue
+                ev = faces[face]
+                if not ev.contains(*_uv_of(ev, xyz[v]), tol=1e-6):
+                    tips.append(i)
+            if not tips or len(ring) - len(tips) < MIN_LOOP_VERTICES:
+                break
+            drop = set(tips)
+            ring = [v for i, v in enumerate(ring) if i not in drop]
+            self.stats.spur_vertices += len(tips)
+        return ring
 
     def _sample_traced(self, runs: list[_Run]) -> list[list[int] | None]:
         """``_sample_runs`` of traced runs, None for one that cannot meet the budget (counted in
@@ -522,7 +593,19 @@ class RingSampler:
         if not suspects:
             return []
         ks = sorted(suspects)
-        pieces = _clusters(ks, n, EXCURSION_CLUSTER_GAP) if stretches else [(k, k + 1) for k in ks]
+        if stretches:
+            # clusters never across a corner: a stretch is traced on one face (M6-1x12-countersunk-screw
+            # turned had suspects either side of the ring's end, a corner between them)
+            pieces = []
+            cidx = np.flatnonzero(corner)
+            run = np.searchsorted(cidx, ks, side="right") % max(1, len(cidx))
+            for r in sorted(set(run.tolist())):
+                pieces += _clusters(
+                    [k for k, q in zip(ks, run.tolist(), strict=True) if q == r], n, EXCURSION_CLUSTER_GAP
+                )
+            pieces.sort()
+        else:
+            pieces = [(k, k + 1) for k in ks]
         j_plane = int(self.topo.loops[li][0])
         zc = float(self.topo.planes[j_plane])
         out = []
@@ -533,17 +616,71 @@ class RingSampler:
                 i, j = self._inside_ends(ring, face_of, face, corner, i, j)
                 span = {k % n for k in range(i, j + 1)}
                 if span & taken:
-                    self.stats.excursion_failures += 1
+                    if not span <= taken:  # (inside a stretch already re-sampled: nothing to do)
+                        self.stats.excursion_failures += 1
                     continue
-                taken |= span
             inner = [k % n for k in range(i + 1, j)]
             if face is None or corner[inner].any() or any(face_of.get(ring[k]) != face for k in inner):
                 self.stats.excursion_failures += 1  # crosses a face boundary: not traced
                 continue
-            run = self._traced_run(face, ring[i], ring[j % n], zc, j_plane, between=bool(inner))
+            run = self._traced_run(
+                face,
+                ring[i],
+                ring[j % n],
+                zc,
+                j_plane,
+                between=[ring[k] for k in inner],
+                elsewhere=_segments_beside(p, i, j),
+            )
+            if run is None and stretches:
+                # Out of order over a bend the trace from ring[i] cannot reach ring[j] from (the
+                # ring passes M6-1x12-countersunk-screw's U-shaped section four times, the trace
+                # runs up its other branch and off the face): the whole run between the corners
+                # either side, traced from one to the other.
+                # (Stretches of the run re-sampled already are replaced with the rest of it.)
+                wide = self._run_ends(ring, face_of, face, corner, i, j)
+                if wide is not None:
+                    span = {k % n for k in range(wide[0], wide[1] + 1)}
+                    inside = [o for o in out if {k % n for k in range(o[0], o[1] + 1)} <= span]
+                    if taken - {k % n for o in inside for k in range(o[0], o[1] + 1)} & span:
+                        wide = None  # it would overlap a stretch beyond the run
+                if wide is not None:
+                    wide_run = self._traced_run(
+                        face,
+                        ring[wide[0]],
+                        ring[wide[1] % n],
+                        zc,
+                        j_plane,
+                        between=[ring[k % n] for k in range(wide[0] + 1, wide[1])],
+                        elsewhere=_segments_beside(p, *wide),
+                    )
+                    if wide_run is not None:
+                        out = [o for o in out if o not in inside]
+                        taken -= {k % n for o in inside for k in range(o[0], o[1] + 1)}
+                        (i, j), run = wide, wide_run
             if run is not None:
                 out.append((i, j, run))
+                if stretches:
+                    taken |= {k % n for k in range(i, j + 1)}
         return out
+
+    def _run_ends(
+        self, ring: list[int], face_of: dict[int, int], face: int, corner: np.ndarray, i: int, j: int
+    ) -> tuple[int, int] | None:
+        """The stretch ring[i] -> ring[j] widened to the corners either side of it, if those bound a
+        run of ``face`` alone, short of the whole ring (else None)."""
+        n = len(ring)
+        while not corner[i % n]:
+            i -= 1
+            if j - i >= n - 1 or face_of.get(ring[i % n]) != face:
+                return None
+        while not corner[j % n]:
+            if face_of.get(ring[j % n]) != face:
+                return None
+            j += 1
+            if j - i >= n - 1:
+                return None
+        return i, j
 
     def _inside_ends(
         self, ring: list[int], face_of: dict[int, int], face: int, corner: np.ndarray, i: int, j: int
@@ -572,13 +709,24 @@ class RingSampler:
         return i, j
 
     def _traced_run(
-        self, face: int, a: int, b: int, zc: float, plane: int, *, between: bool = False
+        self,
+        face: int,
+        a: int,
+        b: int,
+        zc: float,
+        plane: int,
+        *,
+        between: Sequence[int] = (),
+        elsewhere: np.ndarray | None = None,
     ) -> _Run | None:
         """The run from vertex ``a`` to vertex ``b`` of face ``face`` along the exact curve through
         them (seeded by a trace from a), or None if the trace fails (counted) or, where the ring has
         no vertices ``between`` a and b, if the chord a-b is within budget of that curve. (With
         vertices between, out of order, the run replaces them even where the curve keeps to the
-        chord: boxed_sphere turned, 340 vertices fanning back and forth over a 0.2 mm bend.)"""
+        chord: boxed_sphere turned, 340 vertices fanning back and forth over a 0.2 mm bend.)
+        A trace that runs along the ring's other segments (``elsewhere``, (m, 2, 2) x/y) went round
+        a piece of the section the ring has already (bug24595_281390 turned: 11.8 mm to join points
+        4.6 mm apart): a failure too."""
         xyz = self.pool.xyz
         ev = self.mesh.faces[face]
         uv_a = _uv_of(ev, xyz[a])
@@ -599,12 +747,39 @@ class RingSampler:
             self.stats.excursion_failures += 1
             return None
         tr = np.array(trace).reshape(-1, 4)
+        if elsewhere is not None and len(tr) and len(elsewhere):
+            away = tr[
+                (np.hypot(*(tr[:, :2] - xyz[a, :2]).T) > self.seg_len)
+                & (np.hypot(*(tr[:, :2] - xyz[b, :2]).T) > self.seg_len),
+                :2,
+            ]
+            if len(away) and _min_distance_to_segments(away, elsewhere) <= CHORD_FILL * self.chord:
+                self.stats.excursion_failures += 1
+                return None
         on_plane = np.column_stack([tr[:, :2], np.full(len(tr), xyz[a, 2])])
         ends = np.broadcast_to(xyz[a], on_plane.shape), np.broadcast_to(xyz[b], on_plane.shape)
-        if not between and (
-            not len(tr) or _point_segment_distance(on_plane, *ends).max() <= CHORD_FILL * self.chord
-        ):
-            return None  # the curve stays by the chord: the segment was right
+        if not len(tr) or _point_segment_distance(on_plane, *ends).max() <= CHORD_FILL * self.chord:
+            if not between:
+                return None  # the curve stays by the chord: the segment was right
+            # the ring's vertices between, on the face, must be within reach of it: else the trace
+            # arrived before an excursion they reach (boxed_sphere turned: ends 0.6 um apart, a
+            # vertex between 0.047 mm out)
+            on_face = [v for v in between if ev.contains(*_uv_of(ev, xyz[v]), tol=1e-6)]
+            if on_face:
+                pts = xyz[on_face]
+                far = _point_segment_distance(pts, *(np.broadcast_to(xyz[q], pts.shape) for q in (a, b)))
+                # farther than half the chord: beyond any arc of a half turn from a to b, which the
+                # run (sampled from its seed path to the budget) would follow; the points the rest
+                # of the ring passes are not lost
+                reach = max(self.chord, 0.5 * float(np.linalg.norm(xyz[b, :2] - xyz[a, :2])))
+                away = pts[far > reach, :2]
+                if len(away) and (
+                    elsewhere is None
+                    or not len(elsewhere)
+                    or any(_min_distance_to_segments(q[None], elsewhere) > self.chord for q in away)
+                ):
+                    self.stats.excursion_failures += 1
+                    return None
         path = np.vstack([xyz[a, :2], tr[:, :2], xyz[b, :2]])
         s = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(path, axis=0).T))])
         uv = np.vstack([uv_a, tr[:, 2:], ev.uv_near(tuple(xyz[b]), tuple(tr[-1, 2:] if len(tr) else uv_a))])
@@ -1348,6 +1523,27 @@ def _chord_position(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     ab = b - a
     denom = np.einsum("ij,ij->i", ab, ab)
     return np.einsum("ij,ij->i", p - a, ab) / np.where(denom > 0, denom, 1.0)
+
+
+def _segments_beside(p: np.ndarray, i: int, j: int) -> np.ndarray:
+    """The segments (m, 2, 2) of the closed ring ``p`` (n, 2) that neither lie in its stretch p[i] ->
+    p[j] (indices modulo n, j > i) nor touch it."""
+    n = len(p)
+    skip = {k % n for k in range(i - 1, j + 1)}
+    k = np.array([k for k in range(n) if k not in skip], dtype=np.int64)
+    return np.stack([p[k], p[(k + 1) % n]], axis=1) if len(k) else np.zeros((0, 2, 2))
+
+
+def _min_distance_to_segments(q: np.ndarray, seg: np.ndarray, chunk: int = 256) -> float:
+    """Smallest distance (mm) from the points ``q`` (k, 2) to the segments ``seg`` (m, 2, 2)."""
+    a, ab = seg[:, 0], seg[:, 1] - seg[:, 0]
+    denom = np.maximum((ab * ab).sum(axis=1), 1e-300)
+    best = np.inf
+    for s in range(0, len(q), chunk):
+        d = q[s : s + chunk, None, :] - a  # (c, m, 2)
+        t = np.clip((d * ab).sum(axis=2) / denom, 0.0, 1.0)
+        best = min(best, float(np.sqrt(((d - t[..., None] * ab) ** 2).sum(axis=2).min())))
+    return best
 
 
 def _point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:

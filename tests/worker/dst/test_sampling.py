@@ -209,6 +209,98 @@ def test_a_trace_stops_where_its_face_ends(tmp_path):
         ev.trace_level(u, v, 2.0, (5.0, 7.0), direction, step=0.5, max_length=20.0)
 
 
+def test_a_trace_arrives_at_a_target_on_its_faces_edge(tmp_path):
+    """A stretch may end at a corner, on the face's edge: the step that reaches it leaves the face,
+    and the trace has arrived (it failed before, leaving a tangled stretch of the report's reference
+    as it was)."""
+    from build123d import Box
+    from OCP.BRepAdaptor import BRepAdaptor_Surface
+
+    from worker.dst.exact import ExactFailure, FaceEval
+
+    face = Box(10, 10, 10).faces().sort_by_distance((5, 0, 0))[0]
+    ev = FaceEval(BRepAdaptor_Surface(face.wrapped))
+    u, v = ev.uv_near((5.0, -4.0, 2.0), (0.0, 0.0))
+    direction = ev.section_direction(u, v)
+    pts = ev.trace_level(u, v, 2.0, (5.0, 5.0), direction, step=0.7, max_length=20.0)
+    y = np.array(pts)[:, 1]
+    assert (np.diff(y) > 0).all() and 4.3 - 1e-9 <= y[-1] < 5.0
+    with pytest.raises(ExactFailure, match="left the face"):  # a target beyond the edge: not reached
+        ev.trace_level(u, v, 2.0, (5.0, 6.5), direction, step=0.7, max_length=20.0)
+
+
+@pytest.fixture(scope="module")
+def box_sampler(tmp_path_factory):
+    """A sampler of the 10 mm cube's section z = 2 (four faces, their corners at x, y = +-5)."""
+    from build123d import Box
+
+    from tests.conftest import write_step
+
+    path = write_step(Box(10, 10, 10), tmp_path_factory.mktemp("b") / "box.step", nurbs=False)
+    part = read_step(path)
+    diag, _ = bbox_diagonal(part)
+    mesh = build_topomesh(
+        part.solids[0],
+        deflection=topo_deflection(diag),
+        angular=C.TOPO_ANGULAR_RAD,
+        merge_tol=C.MERGE_TOL_REL * diag,
+    )
+    z = float(mesh.xyz[:, 2].min()) + 2.0
+    topo = cut_topology(mesh, np.array([z]), on_plane_tol=C.ON_PLANE_TOL_MM, noise_tol=np.zeros(1))
+    return mesh, topo, z
+
+
+def test_a_ring_passing_a_run_out_of_order_is_traced_again_between_its_corners(box_sampler):
+    """A ring that passes the section of one face back and forth (as the report's reference did on
+    parts turned so that a plane nearly touches a rounded edge: M6-1x12-countersunk-screw's U-shaped
+    section passed four times, its perimeter 17% long) is traced again from the corner before to the
+    corner after; a vertex where the ring turns back outside its face (a spur onto the surface's
+    extension) is dropped first. The result passes every side once, in order, within budget."""
+    mesh, topo, z = box_sampler
+    sampler = RingSampler(
+        mesh, topo, VertexPool(), segment_length=1.0, chord_error=0.01, keep_crossings=False
+    )
+    lo = mesh.xyz[:, :2].min(axis=0)
+    hi = mesh.xyz[:, :2].max(axis=0)
+    mid = 0.5 * (lo + hi)
+
+    def face_at(x: float, y: float) -> int:
+        return next(
+            k
+            for k, f in enumerate(mesh.faces)
+            if f.ad.GetType() == GeomAbs_Plane
+            and abs(f.ad.Plane().Axis().Direction().Z()) < 0.5
+            and f.contains(*f.uv_near((x, y, z), (0.0, 0.0)), tol=1e-6)
+            and np.linalg.norm(np.subtract(f.point(*f.uv_near((x, y, z), (0.0, 0.0))), (x, y, z))) < 1e-9
+        )
+
+    x1 = hi[0]
+    # along the side x = x1 (loops run counter-clockwise: +y there) twice over y = -2 .. 3 (the
+    # trace from y = 3 cannot reach y = -2: it runs on, off the face), then a spur past its far
+    # corner (y beyond hi, on the plane's extension) and back
+    side_y = [-3.0, -1.0, 1.0, 3.0, -2.0, 0.0, 2.0, 4.0, hi[1] + 0.5, 4.2]
+    corners = [(x1, lo[1]), (x1, hi[1]), (lo[0], hi[1]), (lo[0], lo[1])]
+    ids = [sampler.pool.add((x, y, z), 0) for x, y in corners]
+    sampler.corner_vids.update(ids)
+    side = [sampler.pool.add((x1, mid[1] + y, z), 0) for y in side_y]
+    ring = [ids[0], *side, ids[1], ids[2], ids[3]]
+    f_side = face_at(x1, mid[1])
+    face_of = {v: f_side for v in [ids[0], *side]}
+    face_of[ids[1]] = face_at(mid[0], hi[1])
+    face_of[ids[2]] = face_at(lo[0], mid[1])
+    face_of[ids[3]] = face_at(mid[0], lo[1])
+    li = 0
+    rings = {li: ring}
+    sampler._replace_excursions(rings, face_of)
+    out = sampler.pool.xyz[rings[li]]
+    assert sampler.stats.spur_vertices == 1
+    on_side = out[np.abs(out[:, 0] - x1) < 1e-9]
+    assert (np.diff(on_side[:, 1]) > 0).all()  # once along the side, in order, corner to corner
+    assert on_side[0, 1] == pytest.approx(lo[1]) and on_side[-1, 1] == pytest.approx(hi[1])
+    assert np.diff(on_side[:, 1]).max() <= 1.0 + 1e-9  # the segment budget
+    assert len(out) == len(on_side) + 2  # the other two corners as they were
+
+
 def test_stretches_to_trace_again_cluster_round_the_ring_and_replace_its_vertices():
     from worker.dst.sampling import _clusters, _splice
 
