@@ -70,18 +70,9 @@ KNOWN_PLANE_DEVIATIONS: dict[str, str] = {
         "the B-rep; OCCT's section stops short too); z = 8.7: the report's reference has a fifth 'loop' "
         "of 0.09 mm, five points there and back along the main loop's curve, which the ring lacks"
     ),
-    "bug27693_cornetta-step.stp": (
-        "z = 42.9: the report's reference overshoots a section corner where a face and its edge "
-        "disagree by 0.011 mm (the file's tolerance), a 0.03 mm spike of the reference, not of the ring"
-    ),
     "trj7_b1-ec-214.stp": (
         "edges with tolerances up to 0.3 mm: faces and their edges disagree by up to 0.28 mm (z = 23.5), "
         "0.06 mm at z = 7.1 and 25.3, so edge roots and face points differ by that much"
-    ),
-    "trj4_k1_top-pe-214.stp": (
-        "z = 1.7 and 11.1: a B-rep edge 0.09 mm off the faces it bounds (near x 35.6, y -2.0) puts a "
-        "spike into both the ring and the reference; the ring samples the face's side of it more densely "
-        "than the reference does (0.009 mm)"
     ),
     "bug29241.stp": (
         "z = 266.7 (a flat face on the plane): no exact point beside the face closer than 3e-5 mm to it "
