@@ -20,6 +20,18 @@ Z = 5.0  # the plane: the section is the circle of radius 7.5 about the axis
 R_Z = RADIUS * (1.0 - Z / HEIGHT)
 
 
+def _topomesh_of(path):
+    """The topology mesh of the part in ``path`` (its one solid) at the build's settings."""
+    part = read_step(path)
+    diag, _ = bbox_diagonal(part)
+    return build_topomesh(
+        part.solids[0],
+        deflection=topo_deflection(diag),
+        angular=C.TOPO_ANGULAR_RAD,
+        merge_tol=C.MERGE_TOL_REL * diag,
+    )
+
+
 @pytest.fixture(scope="module")
 def cone_sampler(tmp_path_factory):
     from tests.conftest import build_part, write_step
@@ -29,14 +41,7 @@ def cone_sampler(tmp_path_factory):
         tmp_path_factory.mktemp("c") / "cone.step",
         nurbs=False,
     )
-    part = read_step(path)
-    diag, _ = bbox_diagonal(part)
-    mesh = build_topomesh(
-        part.solids[0],
-        deflection=topo_deflection(diag),
-        angular=C.TOPO_ANGULAR_RAD,
-        merge_tol=C.MERGE_TOL_REL * diag,
-    )
+    mesh = _topomesh_of(path)
     world = np.array([Z])
     topo = cut_topology(mesh, world, on_plane_tol=C.ON_PLANE_TOL_MM, noise_tol=np.zeros(1))
     sampler = RingSampler(mesh, topo, VertexPool(), segment_length=1.0, chord_error=0.01)
@@ -236,15 +241,7 @@ def box_sampler(tmp_path_factory):
 
     from tests.conftest import write_step
 
-    path = write_step(Box(10, 10, 10), tmp_path_factory.mktemp("b") / "box.step", nurbs=False)
-    part = read_step(path)
-    diag, _ = bbox_diagonal(part)
-    mesh = build_topomesh(
-        part.solids[0],
-        deflection=topo_deflection(diag),
-        angular=C.TOPO_ANGULAR_RAD,
-        merge_tol=C.MERGE_TOL_REL * diag,
-    )
+    mesh = _topomesh_of(write_step(Box(10, 10, 10), tmp_path_factory.mktemp("b") / "box.step", nurbs=False))
     z = float(mesh.xyz[:, 2].min()) + 2.0
     topo = cut_topology(mesh, np.array([z]), on_plane_tol=C.ON_PLANE_TOL_MM, noise_tol=np.zeros(1))
     return mesh, topo, z
