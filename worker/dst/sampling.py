@@ -419,7 +419,7 @@ class RingSampler:
             ring = rings[li]
             while pieces:  # each piece must keep the curve its dropped vertices lie on
                 new = _splice(ring, pieces)
-                lost = [pc for pc in pieces if self._loses_curve(ring, pc, new, face_of)]
+                lost = self._lost_pieces(ring, pieces, new, face_of)
                 if not lost:
                     break
                 self.stats.excursion_failures += len(lost)
@@ -428,30 +428,36 @@ class RingSampler:
                 rings[li] = new
                 self.stats.excursions += len(pieces)
 
-    def _loses_curve(
-        self, ring: list[int], piece: tuple[int, int, list[int]], new: list[int], face_of: dict[int, int]
-    ) -> bool:
-        """Whether ``new`` (``ring`` with its pieces re-sampled) passes farther than the budget from a
-        vertex the piece drops that lies on its face (an exact point of the curve): a trace that
+    def _lost_pieces(
+        self,
+        ring: list[int],
+        pieces: list[tuple[int, int, list[int]]],
+        new: list[int],
+        face_of: dict[int, int],
+    ) -> list[tuple[int, int, list[int]]]:
+        """The pieces from whose dropped vertices lying on their faces (exact points of the curve)
+        ``new`` (``ring`` with the pieces re-sampled) passes farther than the budget: a trace that
         stopped short of a narrow excursion the ring had reached (boxed_sphere turned: 6 um)."""
-        i, j, _ = piece
         n = len(ring)
         kept = set(new)
-        xyz = self.pool.xyz
-        dropped = []
-        for k in range(i + 1, j):
-            v = ring[k % n]
-            face = face_of.get(v)
-            if v in kept or face is None:
-                continue
-            ev = self.mesh.faces[face]
-            if ev.contains(*_uv_of(ev, xyz[v]), tol=1e-6):
-                dropped.append(v)
-        if not dropped:
-            return False
-        p = xyz[new, :2]
+        p = self.pool.xyz[new, :2]
         seg = np.stack([p, np.roll(p, -1, axis=0)], axis=1)
-        return any(_min_distance_to_segments(xyz[[v], :2], seg) > self.chord for v in dropped)
+        lost = []
+        for piece in pieces:
+            i, j, _ = piece
+            dropped = [
+                v
+                for v in (ring[k % n] for k in range(i + 1, j))
+                if v not in kept and (face := face_of.get(v)) is not None and self._in_trim(face, v)
+            ]
+            if dropped and _distances_to_segments(self.pool.xyz[dropped, :2], seg).max() > self.chord:
+                lost.append(piece)
+        return lost
+
+    def _in_trim(self, face: int, v: int) -> bool:
+        """Whether vertex ``v`` lies on ``face`` within its trim (not on its surface's extension)."""
+        ev = self.mesh.faces[face]
+        return ev.contains(*_uv_of(ev, self.pool.xyz[v]), tol=TRIM_TOL_MM)
 
     def _without_spurs(self, ring: list[int], face_of: dict[int, int]) -> list[int]:
         """``ring`` without the tips of its spurs onto a face's extension, tip after tip: vertices
@@ -460,7 +466,6 @@ class RingSampler:
         surface beyond it (M6-1x12-countersunk-screw turned: 0.3 mm out and back, 0.05 mm off the
         B-rep); no section of the B-rep turns back there."""
         xyz = self.pool.xyz
-        faces = self.mesh.faces
         while len(ring) > MIN_LOOP_VERTICES:
             p = xyz[ring, :2]
             d = np.roll(p, -1, axis=0) - p
@@ -471,10 +476,7 @@ class RingSampler:
             for i in np.flatnonzero(back).tolist():
                 v = ring[i]
                 face = face_of.get(v, face_of.get(ring[i - 1]))
-                if face is None or v in self.corner_vids:
-                    continue
-                ev = faces[face]
-                if not ev.contains(*_uv_of(ev, xyz[v]), tol=1e-6):
+                if face is not None and v not in self.corner_vids and not self._in_trim(face, v):
                     tips.append(i)
             if not tips or len(ring) - len(tips) < MIN_LOOP_VERTICES:
                 break
@@ -610,13 +612,17 @@ class RingSampler:
         zc = float(self.topo.planes[j_plane])
         out = []
         taken: set[int] = set()  # vertices of the stretches so far (widened ones must not overlap)
+
+        def span(a: int, b: int) -> set[int]:  # the ring positions of stretch a -> b, ends included
+            return {k % n for k in range(a, b + 1)}
+
         for i, j in pieces:
             face = face_of.get(ring[i])
             if stretches and face is not None:
                 i, j = self._inside_ends(ring, face_of, face, corner, i, j)
-                span = {k % n for k in range(i, j + 1)}
-                if span & taken:
-                    if not span <= taken:  # (inside a stretch already re-sampled: nothing to do)
+                here = span(i, j)
+                if here & taken:
+                    if not here <= taken:  # (inside a stretch already re-sampled: nothing to do)
                         self.stats.excursion_failures += 1
                     continue
             inner = [k % n for k in range(i + 1, j)]
@@ -640,9 +646,10 @@ class RingSampler:
                 # (Stretches of the run re-sampled already are replaced with the rest of it.)
                 wide = self._run_ends(ring, face_of, face, corner, i, j)
                 if wide is not None:
-                    span = {k % n for k in range(wide[0], wide[1] + 1)}
-                    inside = [o for o in out if {k % n for k in range(o[0], o[1] + 1)} <= span]
-                    if taken - {k % n for o in inside for k in range(o[0], o[1] + 1)} & span:
+                    whole = span(*wide)
+                    inside = [o for o in out if span(o[0], o[1]) <= whole]
+                    freed = set().union(*(span(o[0], o[1]) for o in inside))
+                    if (taken - freed) & whole:
                         wide = None  # it would overlap a stretch beyond the run
                 if wide is not None:
                     wide_run = self._traced_run(
@@ -656,12 +663,12 @@ class RingSampler:
                     )
                     if wide_run is not None:
                         out = [o for o in out if o not in inside]
-                        taken -= {k % n for o in inside for k in range(o[0], o[1] + 1)}
+                        taken -= freed
                         (i, j), run = wide, wide_run
             if run is not None:
                 out.append((i, j, run))
                 if stretches:
-                    taken |= {k % n for k in range(i, j + 1)}
+                    taken |= span(i, j)
         return out
 
     def _run_ends(
@@ -691,16 +698,10 @@ class RingSampler:
         the edge and back), where no trace along the face can reach them. At most a stretch short
         of the whole ring."""
         n = len(ring)
-        ev = self.mesh.faces[face]
-        xyz = self.pool.xyz
 
         def outside(k: int) -> bool:
             v = ring[k % n]
-            return (
-                not corner[k % n]
-                and face_of.get(v) == face
-                and not ev.contains(*_uv_of(ev, xyz[v]), tol=1e-6)
-            )
+            return not corner[k % n] and face_of.get(v) == face and not self._in_trim(face, v)
 
         while j - i < n - 2 and outside(j):
             j += 1
@@ -753,7 +754,7 @@ class RingSampler:
                 & (np.hypot(*(tr[:, :2] - xyz[b, :2]).T) > self.seg_len),
                 :2,
             ]
-            if len(away) and _min_distance_to_segments(away, elsewhere) <= CHORD_FILL * self.chord:
+            if len(away) and _distances_to_segments(away, elsewhere).min() <= CHORD_FILL * self.chord:
                 self.stats.excursion_failures += 1
                 return None
         on_plane = np.column_stack([tr[:, :2], np.full(len(tr), xyz[a, 2])])
@@ -764,7 +765,7 @@ class RingSampler:
             # the ring's vertices between, on the face, must be within reach of it: else the trace
             # arrived before an excursion they reach (boxed_sphere turned: ends 0.6 um apart, a
             # vertex between 0.047 mm out)
-            on_face = [v for v in between if ev.contains(*_uv_of(ev, xyz[v]), tol=1e-6)]
+            on_face = [v for v in between if self._in_trim(face, v)]
             if on_face:
                 pts = xyz[on_face]
                 far = _point_segment_distance(pts, *(np.broadcast_to(xyz[q], pts.shape) for q in (a, b)))
@@ -776,7 +777,7 @@ class RingSampler:
                 if len(away) and (
                     elsewhere is None
                     or not len(elsewhere)
-                    or any(_min_distance_to_segments(q[None], elsewhere) > self.chord for q in away)
+                    or _distances_to_segments(away, elsewhere).max() > self.chord
                 ):
                     self.stats.excursion_failures += 1
                     return None
@@ -1534,16 +1535,17 @@ def _segments_beside(p: np.ndarray, i: int, j: int) -> np.ndarray:
     return np.stack([p[k], p[(k + 1) % n]], axis=1) if len(k) else np.zeros((0, 2, 2))
 
 
-def _min_distance_to_segments(q: np.ndarray, seg: np.ndarray, chunk: int = 256) -> float:
-    """Smallest distance (mm) from the points ``q`` (k, 2) to the segments ``seg`` (m, 2, 2)."""
+def _distances_to_segments(q: np.ndarray, seg: np.ndarray, chunk: int = 256) -> np.ndarray:
+    """Distance (mm) from each of the points ``q`` (k, 2) to the nearest of the segments ``seg``
+    (m, 2, 2): (k,)."""
     a, ab = seg[:, 0], seg[:, 1] - seg[:, 0]
     denom = np.maximum((ab * ab).sum(axis=1), 1e-300)
-    best = np.inf
+    out = np.empty(len(q))
     for s in range(0, len(q), chunk):
         d = q[s : s + chunk, None, :] - a  # (c, m, 2)
         t = np.clip((d * ab).sum(axis=2) / denom, 0.0, 1.0)
-        best = min(best, float(np.sqrt(((d - t[..., None] * ab) ** 2).sum(axis=2).min())))
-    return best
+        out[s : s + chunk] = np.sqrt(((d - t[..., None] * ab) ** 2).sum(axis=2).min(axis=1))
+    return out
 
 
 def _point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:

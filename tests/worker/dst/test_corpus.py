@@ -269,8 +269,9 @@ def test_report_reference_follows_the_curve_where_its_crossings_come_out_of_orde
     report's finer topology mesh gave crossings in an order the reference did not untangle (a loop
     fanning back and forth 340 times over a 0.2 mm bend; a stretch ending on a face's extension past
     its edge, out of the trace's reach). The report overstated the ring's chord_dev up to 0.055 mm
-    (OCCT's section: 0.024) and told of parts of the section its reference missed. Every plane now
-    measures within the budget and the reference's resolution, with no such warning."""
+    (OCCT's section: 0.024) and told of parts of the section its reference missed. Those planes now
+    measure within the budget and the reference's resolution, with no such warning (the part's other
+    planes: test_corpus_file_turned)."""
     path = CORPUS / "assembly" / "boxed_sphere.step"
     if not path.is_file():
         pytest.skip(f"the shared STEP corpus is not beside this checkout ({CORPUS})")

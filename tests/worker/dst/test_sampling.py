@@ -193,18 +193,27 @@ def test_a_trace_follows_the_section_curve_in_the_loops_direction(cone_sampler):
         angles(1.4, direction=tuple(-c for c in _tangent(1.4)))
 
 
-def test_a_trace_stops_where_its_face_ends(tmp_path):
-    """A trace may not leave its face's trim (beyond it lies the surface's extension, not the
-    B-rep): on the side x = 5 of a 10 mm cube the section z = 2 is the line y = -5 .. 5."""
+@pytest.fixture(scope="module")
+def cube_side():
+    """The side x = 5 of a 10 mm cube, where the section z = 2 is the line y = -5 .. 5: the face,
+    (u, v) of its point y = -4 and the section's direction there."""
     from build123d import Box
     from OCP.BRepAdaptor import BRepAdaptor_Surface
 
-    from worker.dst.exact import ExactFailure, FaceEval
+    from worker.dst.exact import FaceEval
 
     face = Box(10, 10, 10).faces().sort_by_distance((5, 0, 0))[0]
     ev = FaceEval(BRepAdaptor_Surface(face.wrapped))
     u, v = ev.uv_near((5.0, -4.0, 2.0), (0.0, 0.0))
-    direction = ev.section_direction(u, v)
+    return ev, u, v, ev.section_direction(u, v)
+
+
+def test_a_trace_stops_where_its_face_ends(cube_side):
+    """A trace may not leave its face's trim (beyond it lies the surface's extension, not the
+    B-rep)."""
+    from worker.dst.exact import ExactFailure
+
+    ev, u, v, direction = cube_side
     assert direction == pytest.approx((0.0, 1.0), abs=1e-12)  # material (x < 5) on the left
     pts = ev.trace_level(u, v, 2.0, (5.0, 4.0), direction, step=0.5, max_length=20.0)
     xy = np.array(pts)[:, :2]
@@ -214,19 +223,13 @@ def test_a_trace_stops_where_its_face_ends(tmp_path):
         ev.trace_level(u, v, 2.0, (5.0, 7.0), direction, step=0.5, max_length=20.0)
 
 
-def test_a_trace_arrives_at_a_target_on_its_faces_edge(tmp_path):
+def test_a_trace_arrives_at_a_target_on_its_faces_edge(cube_side):
     """A stretch traced to a corner ends on its face's edge: the trace arrives there (a target
     within a step ahead is never stepped past, so no step leaves the face first), whatever the step;
     a target beyond the edge is not reached."""
-    from build123d import Box
-    from OCP.BRepAdaptor import BRepAdaptor_Surface
+    from worker.dst.exact import ExactFailure
 
-    from worker.dst.exact import ExactFailure, FaceEval
-
-    face = Box(10, 10, 10).faces().sort_by_distance((5, 0, 0))[0]
-    ev = FaceEval(BRepAdaptor_Surface(face.wrapped))
-    u, v = ev.uv_near((5.0, -4.0, 2.0), (0.0, 0.0))
-    direction = ev.section_direction(u, v)
+    ev, u, v, direction = cube_side
     for step in (0.3, 0.7, 1.3, 2.5, 4.0):
         pts = ev.trace_level(u, v, 2.0, (5.0, 5.0), direction, step=step, max_length=20.0)
         y = np.array(pts)[:, 1]
@@ -262,15 +265,14 @@ def test_a_ring_passing_a_run_out_of_order_is_traced_again_between_its_corners(b
     hi = mesh.xyz[:, :2].max(axis=0)
     mid = 0.5 * (lo + hi)
 
-    def face_at(x: float, y: float) -> int:
-        return next(
-            k
-            for k, f in enumerate(mesh.faces)
-            if f.ad.GetType() == GeomAbs_Plane
-            and abs(f.ad.Plane().Axis().Direction().Z()) < 0.5
-            and f.contains(*f.uv_near((x, y, z), (0.0, 0.0)), tol=1e-6)
-            and np.linalg.norm(np.subtract(f.point(*f.uv_near((x, y, z), (0.0, 0.0))), (x, y, z))) < 1e-9
-        )
+    def face_at(x: float, y: float) -> int:  # the side face through (x, y, z)
+        for k, f in enumerate(mesh.faces):
+            if f.ad.GetType() != GeomAbs_Plane or abs(f.ad.Plane().Axis().Direction().Z()) > 0.5:
+                continue
+            uv = f.uv_near((x, y, z), (0.0, 0.0))
+            if f.contains(*uv, tol=1e-6) and np.linalg.norm(np.subtract(f.point(*uv), (x, y, z))) < 1e-9:
+                return k
+        raise AssertionError(f"no side face through ({x}, {y})")
 
     x1 = hi[0]
     # along the side x = x1 (loops run counter-clockwise: +y there) twice over y = -2 .. 3 (the
