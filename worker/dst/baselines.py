@@ -16,15 +16,31 @@ class Preset:
     linear: float  # BRepMesh linear deflection, mm
     angular: float  # BRepMesh angular deflection, rad
     source: str
+    # A slicer's STEP import: the slicer, and the OCCT release it links (its deps build pins it). The
+    # report meshes with the same parameters on its own OCCT, whose BRepMesh can make another mesh.
+    app: str | None = None
+    app_occt: str | None = None
 
 
 BASELINE_PRESETS: dict[str, Preset] = {
     "occt_fast": Preset(0.085, 0.5, "paper Table 1 'fast' (angular: OCCT's default 0.5 rad)"),
     "occt_high_quality": Preset(0.037, 0.5, "paper Table 1 'high quality' (angular: OCCT's default 0.5 rad)"),
     "occt_reference": Preset(0.00576, 0.5, "paper Table 1 'reference' (angular: OCCT's default 0.5 rad)"),
-    "prusaslicer": Preset(0.005, 1.0, "PrusaSlicer 2.5 STEP import (OCCTWrapper.cpp)"),
-    "bambu_orca": Preset(0.003, 0.5, "Bambu Studio / OrcaSlicer STEP import (Format/STEP.cpp)"),
-    "prusaslicer_high": Preset(0.001, 0.25, "PrusaSlicer 'High' STEP import (LoadStepDialog.cpp)"),
+    # PrusaSlicer pins OCCT 7.6.1 (deps/+OCCT/OCCT.cmake: later releases triangulate chamfers wrongly);
+    # Bambu Studio and OrcaSlicer build 7.6.0 (deps/OCCT/OCCT.cmake)
+    "prusaslicer": Preset(
+        0.005, 1.0, "PrusaSlicer 2.5 STEP import (OCCTWrapper.cpp)", "PrusaSlicer", "7.6.1"
+    ),
+    "bambu_orca": Preset(
+        0.003,
+        0.5,
+        "Bambu Studio / OrcaSlicer STEP import (Format/STEP.cpp)",
+        "Bambu Studio / OrcaSlicer",
+        "7.6.0",
+    ),
+    "prusaslicer_high": Preset(
+        0.001, 0.25, "PrusaSlicer 'High' STEP import (LoadStepDialog.cpp)", "PrusaSlicer", "7.6.1"
+    ),
 }
 DEFAULT_BASELINES = ("occt_fast", "occt_high_quality", "prusaslicer")
 

@@ -60,7 +60,7 @@ from worker.dst.pipeline import (
 )
 from worker.dst.planes import plan_planes
 from worker.dst.reference import ExactSections, closed_length, exact_sections
-from worker.dst.step_io import LoadedPart, orient, read_step
+from worker.dst.step_io import LoadedPart, occt_version, orient, read_step
 from worker.dst.stl_io import binary_stl_corners, merge_equal_vertices
 from worker.dst.topomesh import max_tolerance
 
@@ -151,10 +151,37 @@ def _occt_side(
             v,
             tr,
             time.perf_counter() - t,
-            f"OCCT BRepMesh, linear {preset.linear} mm, angular {preset.angular} rad: {preset.source}"
-            + ("" if parallel else " (timed on one thread)"),
+            f"OCCT {occt_version()} BRepMesh, linear {preset.linear} mm, angular {preset.angular} rad: "
+            f"{preset.source}" + ("" if parallel else " (timed on one thread)") + _app_note(preset),
         )
     return _exact_extent(part) if exact else None
+
+
+def _app_note(preset: Preset) -> str:
+    """What a slicer preset's mesh is not, where the slicer links another OCCT release."""
+    if preset.app is None or preset.app_occt == occt_version():
+        return ""
+    return (
+        f"; {preset.app} itself links OCCT {preset.app_occt}, whose mesher makes another mesh from "
+        "these parameters"
+    )
+
+
+def slicer_preset_warning(baselines: Sequence[str]) -> str | None:
+    """The warning a report carries when it compares with slicer presets made on another OCCT than
+    the slicers link: those baselines are the slicers' parameters, not their meshes."""
+    presets = {n: BASELINE_PRESETS[n] for n in baselines}
+    other = [n for n, p in presets.items() if p.app is not None and p.app_occt != occt_version()]
+    if not other:
+        return None
+    apps = sorted({f"{presets[n].app} OCCT {presets[n].app_occt}" for n in other})
+    return (
+        f"baseline(s) {', '.join(other)} are made with those slicers' STEP-import meshing parameters on "
+        f"OCCT {occt_version()}, not by the slicers: they link older OCCT releases ({'; '.join(apps)}), "
+        "whose mesher makes other meshes from the same parameters (on a B-spline hemisphere, PrusaSlicer "
+        "2.5's own mesh has about half the triangles and a smaller largest chord_dev). To measure your "
+        "slicer's own mesh, export it as STL and run `dst report part.step mesh.stl`"
+    )
 
 
 def _exact_extent(part: LoadedPart) -> OcctSide:
@@ -631,6 +658,8 @@ def _build_report(
 
     # --- warnings ----------------------------------------------------------------------------------
     warnings.extend(part.warnings)
+    if slicer_note := slicer_preset_warning(baselines):
+        warnings.append(slicer_note)
     if dst is not None:
         warnings.extend(w for w in dst.warnings if w not in warnings)
     else:

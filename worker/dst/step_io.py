@@ -80,6 +80,13 @@ class LoadedPart:
         return float(sum(solid_volume(s) for s in self.solids))
 
 
+def occt_version() -> str:
+    """The OCCT release in use: cadquery-ocp's version is OCCT's and a build number (8.0.1.0)."""
+    import OCP
+
+    return ".".join(str(OCP.__version__).split(".")[:3])
+
+
 def read_step(path: str | os.PathLike[str]) -> LoadedPart:
     """Read ``path`` and return its closed solids.
 

@@ -23,8 +23,8 @@ from worker.dst.baselines import BASELINE_PRESETS, parse_baselines
 from worker.dst.params import SliceParams
 from worker.dst.pipeline import slice_step
 from worker.dst.reference import closed_length, exact_sections, occt_sections
-from worker.dst.report import MeshInput, Report, build_report
-from worker.dst.step_io import read_step, solid_volume
+from worker.dst.report import MeshInput, Report, build_report, slicer_preset_warning
+from worker.dst.step_io import occt_version, read_step, solid_volume
 
 R = 20.0
 
@@ -460,6 +460,33 @@ def test_a_turned_torus_is_measured_within_the_references_resolution(torus, angl
     resolution = report.reference.resolution_mm
     assert max(layer.vertex_dev for layer in dst.layers) <= resolution + 5e-4
     assert max(layer.chord_dev for layer in dst.layers) <= params.chord_error + resolution
+
+
+def test_slicer_presets_say_they_are_parameters_on_this_occt_not_the_slicers_meshes(hemisphere, monkeypatch):
+    """A slicer's STEP-import preset is its meshing parameters on this service's OCCT; the slicers
+    link OCCT 7.6, whose mesher makes other meshes from them (test_slicers shows it with PrusaSlicer):
+    the description and a warning say so, for those presets only."""
+    import worker.dst.report as report_module
+
+    _, _, report, _ = hemisphere
+    (fast,) = [m for m in report.meshes if m.name == "occt_fast"]
+    assert fast.description.startswith(f"OCCT {occt_version()} BRepMesh, linear 0.085 mm, angular 0.5 rad")
+    assert "links OCCT" not in fast.description
+    assert occt_version().count(".") == 2 and occt_version() != "7.6.1"
+    assert slicer_preset_warning(["occt_fast", "occt_reference"]) is None
+    assert not any("STEP-import meshing parameters" in w for w in report.warnings)
+    warning = slicer_preset_warning(["occt_fast", "prusaslicer", "bambu_orca", "prusaslicer_high"])
+    assert warning.startswith("baseline(s) prusaslicer, bambu_orca, prusaslicer_high are made with")
+    assert "Bambu Studio / OrcaSlicer OCCT 7.6.0; PrusaSlicer OCCT 7.6.1" in warning
+    assert f"on OCCT {occt_version()}, not by the slicers" in warning
+    assert report_module._app_note(BASELINE_PRESETS["prusaslicer"]).startswith(
+        "; PrusaSlicer itself links OCCT 7.6.1"
+    )
+    # on the OCCT a slicer links, its preset is its mesh
+    monkeypatch.setattr(report_module, "occt_version", lambda: "7.6.1")
+    assert report_module._app_note(BASELINE_PRESETS["prusaslicer"]) == ""
+    assert slicer_preset_warning(["prusaslicer", "prusaslicer_high"]) is None
+    assert slicer_preset_warning(["bambu_orca"]).startswith("baseline(s) bambu_orca are made with")
 
 
 def test_unknown_baseline_is_refused():
