@@ -144,6 +144,26 @@ def _half_torus(major: float, minor: float, seam: float):
     return bd.Solid(fix.Solid())
 
 
+def kinked_prism(corners, height: float):
+    """A prism whose whole side wall is ONE face: the extrusion of a closed degree-1 B-spline through
+    ``corners`` (C0 at each), so that the section's corners lie inside that face, not on its edges."""
+    from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeEdge, BRepBuilderAPI_MakeFace, BRepBuilderAPI_MakeWire
+    from OCP.BRepPrimAPI import BRepPrimAPI_MakePrism
+    from OCP.collections import Array1_double, Array1_gp_Pnt, Array1_int
+    from OCP.Geom import Geom_BSplineCurve
+    from OCP.gp import gp_Pnt, gp_Vec
+
+    pts = [*corners, corners[0]]
+    poles, knots, mults = Array1_gp_Pnt(1, len(pts)), Array1_double(1, len(pts)), Array1_int(1, len(pts))
+    for i, (x, y) in enumerate(pts, 1):
+        poles.SetValue(i, gp_Pnt(x, y, 0.0))
+        knots.SetValue(i, float(i - 1))
+        mults.SetValue(i, 2 if i in (1, len(pts)) else 1)
+    wire = BRepBuilderAPI_MakeWire(BRepBuilderAPI_MakeEdge(Geom_BSplineCurve(poles, knots, mults, 1)).Edge())
+    face = BRepBuilderAPI_MakeFace(wire.Wire(), True).Face()
+    return BRepPrimAPI_MakePrism(face, gp_Vec(0, 0, height)).Shape()
+
+
 def write_step(shape, path: Path, *, nurbs: bool = True, unit: str | None = None) -> Path:
     """Write ``shape`` to STEP, converted to B-splines (``BRepBuilderAPI_NurbsConvert``) by default."""
     from OCP.BRepBuilderAPI import BRepBuilderAPI_NurbsConvert

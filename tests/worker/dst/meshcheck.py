@@ -110,3 +110,63 @@ def distance_to_faces(points: np.ndarray, solids) -> np.ndarray:
         vertex = BRepBuilderAPI_MakeVertex(gp_Pnt(*map(float, p))).Vertex()
         out.append(BRepExtrema_DistShapeShape(vertex, faces).Value())
     return np.array(out)
+
+
+def ring_self_crossings(mesh) -> list[tuple[int, float, float]]:
+    """Where a loop of the mesh's cut (as a slicer cuts the STL: float32 vertices) crosses itself:
+    (plane, area, length) of the pocket between each two crossing segments of one loop, the shorter
+    way round it (loops of different solids may cross: an assembly's parts can overlap)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    from worker.dst.deviation import cut_mesh
+
+    cut = cut_mesh(mesh.vertices32.astype(np.float64), mesh.triangles, mesh.planes.section_z)
+    n = len(cut.vertices)
+    node = cut.seg_node
+    graph = coo_matrix((np.ones(len(node)), (node[:, 0], node[:, 1])), shape=(n, n))
+    _, loop_of = connected_components(graph, directed=False)
+    nxt = dict(zip(node[:, 0].tolist(), node[:, 1].tolist(), strict=True))
+    out = []
+    for j in np.unique(cut.seg_plane).tolist():
+        sel = np.flatnonzero(cut.seg_plane == j)
+        a, b = cut.seg[sel, 0], cut.seg[sel, 1]
+        if len(sel) < 4:
+            continue
+        half = 0.5 * np.linalg.norm(b - a, axis=1)
+        pairs = cKDTree(0.5 * (a + b)).query_pairs(2.0 * half.max() + 1e-12, output_type="ndarray")
+        i, k = pairs[:, 0], pairs[:, 1]
+        ni, nk = node[sel[i]], node[sel[k]]
+        keep = (loop_of[ni[:, 0]] == loop_of[nk[:, 0]]) & ~(ni[:, :, None] == nk[:, None, :]).any(axis=(1, 2))
+        i, k = i[keep], k[keep]
+
+        def side(p, q, r):
+            return np.sign(
+                (q[:, 0] - p[:, 0]) * (r[:, 1] - p[:, 1]) - (q[:, 1] - p[:, 1]) * (r[:, 0] - p[:, 0])
+            )
+
+        x = (side(a[i], b[i], a[k]) * side(a[i], b[i], b[k]) < 0) & (
+            side(a[k], b[k], a[i]) * side(a[k], b[k], b[i]) < 0
+        )
+        for s, t in zip(sel[i[x]].tolist(), sel[k[x]].tolist(), strict=True):
+            pockets = []
+            for first, second in ((s, t), (t, s)):  # from the end of one to the start of the other
+                path, v = [], int(node[first, 1])
+                while v != int(node[second, 0]) and v in nxt and len(path) <= n:
+                    path.append(v)
+                    v = nxt[v]
+                if v != int(node[second, 0]):
+                    continue  # an open chain: no pocket this way
+                path.append(v)
+                pts = cut.vertices[path]
+                length = float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum())
+                area = 0.5 * abs(
+                    float(
+                        np.dot(pts[:, 0], np.roll(pts[:, 1], -1)) - np.dot(pts[:, 1], np.roll(pts[:, 0], -1))
+                    )
+                )
+                pockets.append((length, area))
+            length, area = min(pockets) if pockets else (np.inf, np.inf)
+            out.append((int(j), area, length))
+    return out

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from tests.conftest import circle_sag
+from tests.conftest import circle_sag, kinked_prism
 from tests.worker.dst.meshcheck import assert_slab_property, assert_watertight, distance_to_faces, ring_edges
 from worker.dst.params import SliceParams
 from worker.dst.pipeline import slice_step
@@ -518,26 +518,6 @@ def test_a_plane_just_below_a_torus_top_circle_cuts_both_of_its_circles(make_ste
     assert mesh.stats["ridge_nodes"] > 0
 
 
-def _kinked_prism(corners, height: float):
-    """A prism whose whole side wall is ONE face: the extrusion of a closed degree-1 B-spline through
-    ``corners`` (C0 at each), so that the section's corners lie inside that face, not on its edges."""
-    from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeEdge, BRepBuilderAPI_MakeFace, BRepBuilderAPI_MakeWire
-    from OCP.BRepPrimAPI import BRepPrimAPI_MakePrism
-    from OCP.collections import Array1_double, Array1_gp_Pnt, Array1_int
-    from OCP.Geom import Geom_BSplineCurve
-    from OCP.gp import gp_Pnt, gp_Vec
-
-    pts = [*corners, corners[0]]
-    poles, knots, mults = Array1_gp_Pnt(1, len(pts)), Array1_double(1, len(pts)), Array1_int(1, len(pts))
-    for i, (x, y) in enumerate(pts, 1):
-        poles.SetValue(i, gp_Pnt(x, y, 0.0))
-        knots.SetValue(i, float(i - 1))
-        mults.SetValue(i, 2 if i in (1, len(pts)) else 1)
-    wire = BRepBuilderAPI_MakeWire(BRepBuilderAPI_MakeEdge(Geom_BSplineCurve(poles, knots, mults, 1)).Edge())
-    face = BRepBuilderAPI_MakeFace(wire.Wire(), True).Face()
-    return BRepPrimAPI_MakePrism(face, gp_Vec(0, 0, height)).Shape()
-
-
 def test_corners_inside_one_face_are_ring_vertices(tmp_path):
     """A B-spline face with C0 knot lines (a polyline swept into one face, as many STEP exporters write
     them) has section corners inside it: each must be a ring vertex, else a segment cuts the corner (the
@@ -545,7 +525,7 @@ def test_corners_inside_one_face_are_ring_vertices(tmp_path):
     from tests.conftest import write_step
 
     corners = np.array([(0.0, 0.0), (20.0, 0.0), (26.0, 9.0), (12.0, 15.0), (-3.0, 7.0)])
-    path = write_step(_kinked_prism([tuple(c) for c in corners], 5.0), tmp_path / "kinked.step")
+    path = write_step(kinked_prism([tuple(c) for c in corners], 5.0), tmp_path / "kinked.step")
     mesh = slice_step(path, SliceParams(layer_height=0.2))
     assert_watertight(mesh)
     v = mesh.vertices

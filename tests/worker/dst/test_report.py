@@ -350,7 +350,8 @@ def test_reference_sampled_in_a_helper_is_the_reference_sampled_here(hemisphere,
     kw = dict(chord=1e-3, segment_length=2.0, deflection=0.01, parallel=False)
     shared = exact_sections(mesh.part, heights, helper=True, **kw)
     pids = log.read_text().split()
-    assert len(pids) == 2 and pids[0] == str(os.getpid()) != pids[1]
+    # one share here, one in a helper (either may log first: they run side by side)
+    assert len(pids) == 2 and str(os.getpid()) in pids and len(set(pids)) == 2
     here = exact_sections(mesh.part, heights, helper=False, **kw)
     assert set(log.read_text().split()[2:]) == {str(os.getpid())}
     for a, b in zip(shared.loops, here.loops, strict=True):

@@ -312,3 +312,66 @@ def test_stretches_to_trace_again_cluster_round_the_ring_and_replace_its_vertice
     # vertices 3, 4 replaced by 100, 101; 9 and 0 (the stretch 8 -> 11 = 1 wraps) by 200
     assert _splice(ring, [(2, 5, [100, 101]), (8, 11, [200])]) == [1, 2, 100, 101, 5, 6, 7, 8, 200]
     assert _splice(ring, [(4, 5, [7])]) == [0, 1, 2, 3, 4, 7, 5, 6, 7, 8, 9]
+
+
+def test_a_trace_round_a_loop_smaller_than_the_segment_budget_is_not_taken(cone_sampler):
+    """A pinned ring whose two crossings came out of order (the second a little behind the first)
+    has a trace from one to the other go the long way round, along the ring's other segments: that
+    trace fails, however small the loop is against the segment budget (trj4_k1_top-pe-214 at
+    z = 1.3: round a 2.3 mm hole, all of it within the 0.8 mm budget of the trace's ends, three laps
+    spliced into one ring). A trace along a piece the ring skips is taken."""
+    from worker.dst.sampling import _segments_beside
+
+    base, cone, _ = cone_sampler
+    budget = 4.0 * R_Z  # every point of the circle within the budget of any other
+    sampler = RingSampler(base.mesh, base.topo, VertexPool(), segment_length=budget, chord_error=0.01)
+    # the circle within the chord budget (0.0023 mm sag), but for two points out of order (0.55 before
+    # 0.5) and a piece it skips (from 3.0 to 4.5: its chord 2 mm inside the circle)
+    angles = [a for a in np.arange(0.0, 2 * math.pi - 0.01, 0.05) if not 3.0 < a < 4.5]
+    angles[10], angles[11] = angles[11], angles[10]
+    ring = [sampler.pool.add(tuple(_on_circle(a)), 0) for a in angles]
+    p = sampler.pool.xyz[ring, :2]
+
+    def traced(i: int, j: int):
+        return sampler._traced_run(cone, ring[i], ring[j], Z, 0, elsewhere=_segments_beside(p, i, j))
+
+    failures = sampler.stats.excursion_failures
+    assert angles[10] > angles[11] and traced(10, 11) is None  # round the circle, along the ring
+    assert sampler.stats.excursion_failures == failures + 1
+    k = angles.index(next(a for a in angles if a >= 4.5)) - 1  # the ring's chord 3.0 -> 4.5
+    run = traced(k, k + 1)
+    assert run is not None and run.traced
+    assert run.s[-1] == pytest.approx(R_Z * (angles[k + 1] - angles[k]), rel=0.01)
+
+
+def test_a_surface_kink_the_curve_does_not_cross_between_the_runs_ends_is_no_ring_vertex(tmp_path):
+    """A run is split at the exact point where its section crosses a C0 line of its face (a corner
+    inside one B-spline face), found where the run's seed path crosses that line. An exact end solved
+    past the line (boxed_sphere at z = 0.1: a rounded corner's C0 line 0.03 mm beyond the crossing)
+    leaves the line's point outside the run, and the ring stepped back to it and forth again, a bow
+    tie: no such point then. Where the curve crosses the line between the ends, it is the corner."""
+    from tests.conftest import kinked_prism, write_step
+    from worker.dst.sampling import _Run
+
+    corners = [(0.0, 0.0), (20.0, 0.0), (26.0, 9.0), (12.0, 15.0), (-3.0, 7.0)]
+    mesh = _topomesh_of(write_step(kinked_prism(corners, 5.0), tmp_path / "kinked.step"))
+    z = float(mesh.xyz[:, 2].min()) + 2.5
+    topo = cut_topology(mesh, np.array([z]), on_plane_tol=C.ON_PLANE_TOL_MM, noise_tol=np.zeros(1))
+    sampler = RingSampler(mesh, topo, VertexPool(), segment_length=1.0, chord_error=0.01)
+    (wall,) = [k for k, f in enumerate(mesh.faces) if sampler._surface_kinks(k)[0].size]
+    ev = mesh.faces[wall]
+
+    def run_to(end_xy, seed_end_xy) -> _Run:
+        """The run from (18, 0) to ``end_xy`` on the wall, its seed path ending at ``seed_end_xy``."""
+        a, b = (18.0, 0.0, z), (*end_xy, z)
+        uv_a = ev.uv_near(a, (0.0, 0.0))
+        uv = np.array([uv_a, ev.uv_near((*seed_end_xy, z), uv_a)])
+        s = np.array([0.0, float(np.hypot(b[0] - a[0], b[1] - a[1]))])
+        va, vb = sampler.pool.add(a, 0), sampler.pool.add(b, 0)
+        return _Run(wall, s, uv, 1.0, va, vb, 1, z, 0)
+
+    beyond = (21.0, 1.5)  # on the wall's next piece, past its C0 line at (20, 0)
+    assert sampler._kink_points(run_to((19.97, 0.0), beyond)) == []  # both ends before the line
+    (kink,) = sampler._kink_points(run_to(beyond, beyond))
+    assert sampler.pool.xyz[kink[2]] == pytest.approx((20.0, 0.0, z), abs=1e-9)
+    assert kink[2] in sampler.corner_vids
