@@ -90,10 +90,14 @@ def _face_optimum(fe, uv0: np.ndarray, sign: float) -> tuple[float, float]:
     """(u, v) of the face's lowest (sign=+1) or highest (sign=-1) point reached from ``uv0`` by bounded
     L-BFGS on the untrimmed surface (the caller checks the trim). A periodic direction is not bounded:
     the surface goes on past its seam (a torus turned to an odd angle has its lowest point just across
-    the seam from its lowest node: bounded there, the search stopped on the seam 2.2 um higher)."""
+    the seam from its lowest node: bounded there, the search stopped on the seam 2.2 um higher).
+    There the search is evaluated, and its result given, on the period nearest ``uv0``: a line search
+    can try a step of many periods, which OCCT refuses to evaluate (bug24595_281390 turned (-47.0,
+    -178.7, 118.8): "Geom_BSplineSurface::PeriodicNormalization: Vparameter is too great number")."""
+    start = (float(uv0[0]), float(uv0[1]))
 
     def fun(x: np.ndarray) -> tuple[float, np.ndarray]:
-        z, zu, zv = fe.z_and_grad(float(x[0]), float(x[1]))
+        z, zu, zv = fe.z_and_grad(*fe.same_branch((float(x[0]), float(x[1])), start))
         return sign * z, sign * np.array([zu, zv])
 
     res = minimize(
@@ -107,7 +111,7 @@ def _face_optimum(fe, uv0: np.ndarray, sign: float) -> tuple[float, float]:
         ],
         options={"ftol": 1e-15, "gtol": 1e-12},
     )
-    return float(res.x[0]), float(res.x[1])
+    return fe.same_branch((float(res.x[0]), float(res.x[1])), start)
 
 
 def _edge_extreme(mesh: TopoMesh, ei: int, sign: float) -> tuple[float, np.ndarray]:

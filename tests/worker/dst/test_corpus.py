@@ -275,6 +275,22 @@ def _check_every_plane(mesh, path: Path, key: str | None = None) -> None:
     pytest.xfail(f"{known} ({len(bad)} planes, e.g. {bad[0]})")
 
 
+def test_a_periodic_faces_lowest_point_search_stays_on_a_period_occt_evaluates():
+    """bug24595_281390 turned (-47.0, -178.7, 118.8): the search for a periodic B-spline face's
+    lowest point (L-BFGS, not bounded along the period, so that it may cross the seam) tried a step
+    of so many periods that OCCT refused to evaluate the surface there ("Geom_BSplineSurface::
+    PeriodicNormalization: Vparameter is too great number") and the job failed with OCCT's
+    exception. The search is evaluated on the period nearest its start, and the part is sliced."""
+    path = CORPUS / "freeform" / "bug24595_281390.stp"
+    if not path.is_file():
+        pytest.skip(f"the shared STEP corpus is not beside this checkout ({CORPUS})")
+    params = _params(path).model_copy(update=dict(zip(ROTATION_FIELDS, (-47.0, -178.7, 118.8), strict=True)))
+    mesh = slice_step(path, params)
+    assert_watertight(mesh)
+    assert_slab_property(mesh)
+    assert 0.97 < mesh.stats["mesh_volume_mm3"] / mesh.part.volume_mm3 < 1.03
+
+
 @pytest.mark.slow
 def test_report_reference_follows_the_curve_where_its_crossings_come_out_of_order():
     """boxed_sphere turned to (4.3, 162.2, -128.1): planes nearly tangent to rounded edges, where the
