@@ -134,6 +134,61 @@ def _slit_segments(key: np.ndarray) -> np.ndarray:
     return slit
 
 
+def self_crossings(cut: MeshCut) -> list[tuple[int, float, float]]:
+    """Where a loop of ``cut`` crosses itself: (plane, area mm^2, length mm) of the pocket between
+    each two crossing segments of one loop, the shorter way round it (inf where neither way closes:
+    an open chain, or a vertex where the loop's direction turns over, a folded strip of triangles).
+    Loops that cross other loops are not looked at (an assembly's solids may overlap). A loop whose
+    points came out of order by micrometres makes a bow tie with no pocket to speak of; one that
+    goes round a hole three times, a pocket of the hole's area."""
+    a, b = cut.seg[:, 0], cut.seg[:, 1]
+    if len(a) < 4:
+        return []
+    lift = cut.seg_plane * _PLANE_SEPARATION_MM  # each plane's segments far from every other's
+    mid = np.column_stack([0.5 * (a + b), lift])
+    reach = float(np.linalg.norm(b - a, axis=1).max())
+    pairs = cKDTree(mid).query_pairs(reach + 1e-12, output_type="ndarray")
+    i, k = pairs[:, 0], pairs[:, 1]
+    node = cut.seg_node
+    apart = ~(node[i][:, :, None] == node[k][:, None, :]).any(axis=(1, 2))  # no end in common
+    i, k = i[apart], k[apart]
+
+    def side(p: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
+        return np.sign((q[:, 0] - p[:, 0]) * (r[:, 1] - p[:, 1]) - (q[:, 1] - p[:, 1]) * (r[:, 0] - p[:, 0]))
+
+    cross = (side(a[i], b[i], a[k]) * side(a[i], b[i], b[k]) < 0) & (
+        side(a[k], b[k], a[i]) * side(a[k], b[k], b[i]) < 0
+    )
+    i, k = i[cross], k[cross]
+    if not len(i):
+        return []
+    n = len(cut.vertices)
+    graph = coo_matrix((np.ones(len(node)), (node[:, 0], node[:, 1])), shape=(n, n))
+    _, loop_of = connected_components(graph, directed=False)
+    same = loop_of[node[i, 0]] == loop_of[node[k, 0]]
+    nxt: dict[int, int] = {}
+    for u, w in node.tolist():
+        nxt[u] = w if u not in nxt else -1  # -1: the loop's direction turns over here
+    out = []
+    for s, t in zip(i[same].tolist(), k[same].tolist(), strict=True):
+        best = (np.inf, np.inf)
+        for first, second in ((s, t), (t, s)):  # from the end of one to the start of the other
+            path, v, end = [], int(node[first, 1]), int(node[second, 0])
+            while v != end and v >= 0 and len(path) <= n:
+                path.append(v)
+                v = nxt.get(v, -1)
+            if v != end:
+                continue
+            pts = cut.vertices[[*path, v]]
+            length = float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum())
+            area = 0.5 * abs(
+                float(np.dot(pts[:, 0], np.roll(pts[:, 1], -1)) - np.dot(pts[:, 1], np.roll(pts[:, 0], -1)))
+            )
+            best = min(best, (length, area))
+        out.append((int(cut.seg_plane[s]), best[1], best[0]))
+    return out
+
+
 def crossed_planes(tri_z: np.ndarray, heights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per triangle (corner heights (m, 3)), the planes ``first .. stop - 1`` that cut it, a corner
     on a plane counting as below it: the first plane at or above the lowest corner, and the first

@@ -44,6 +44,7 @@ from worker.dst.deviation import (
     loops_to_segments,
     offset_cut,
     select_planes,
+    self_crossings,
     span_curvatures,
 )
 from worker.dst.errors import DstError, ResourceLimitExceeded, TessellationError
@@ -573,7 +574,7 @@ def _build_report(
 
     def measure(share: list[tuple[float, MeshInput, int, int]], forked: bool) -> None:
         args = (
-            [(*placed[id(m)], j0, j1) for _, m, j0, j1 in share],
+            [(*placed[id(m)], j0, j1, m.kind == "dst") for _, m, j0, j1 in share],
             heights,
             ref_set,
             ref_perimeter,
@@ -637,16 +638,10 @@ def _build_report(
     rank = {name: i for i, name in enumerate(baselines)}  # the baselines in the order asked for
     todo.sort(key=lambda m: rank[m.name] if m.kind == "baseline" else -1)
     report("measuring meshes", 0.7)
-    results = [
-        _mesh_report(
-            m,
-            [_measured(t)[k] for _, t, k in sorted(measuring[id(m)], key=lambda r: r[0])],
-            planes_z,
-            loops_exact,
-            below,
-        )
-        for m in todo
-    ]
+    measured = {
+        id(m): [_measured(t)[k] for _, t, k in sorted(measuring[id(m)], key=lambda r: r[0])] for m in todo
+    }
+    results = [_mesh_report(m, measured[id(m)], planes_z, loops_exact, below) for m in todo]
     exact_volume = occt.volume_mm3
     for r in results:
         r.volume_rel_err = (r.volume_mm3 - exact_volume) / exact_volume if exact_volume > 0 else None
@@ -687,6 +682,13 @@ def _build_report(
         )
     for r in results:
         warnings.extend(_mesh_warnings(r))
+    for m in todo:
+        if m.kind == "dst" and (
+            note := _self_crossing_warning(
+                [p for part in measured[id(m)] for p in part.pockets], planes_z, params.chord_error
+            )
+        ):
+            warnings.append(note)
     for m, r in zip(todo, results, strict=True):
         if m.kind == "dst" and (
             gap := _reference_gaps(part, m, r, ref_set, heights, ref.zmin, ref.flat_planes)
@@ -737,6 +739,8 @@ class _Measured:
     metrics: LayerMetrics
     mesh_wide: tuple[int, int, float] | None  # open edges, non-manifold edges, volume
     side: np.ndarray  # per plane: 0, or at a flat-face plane +1 (measured above the face) / -1 (below)
+    # where the cut crosses itself (``deviation.self_crossings``; looked for in the DST mesh only)
+    pockets: tuple[tuple[int, float, float], ...] = ()
 
 
 @dataclass
@@ -802,11 +806,14 @@ def _measure_planes(
     below: _BelowReference | None,
     n_planes: int,
     workers: int,
+    crossings: bool = False,
 ) -> _Measured:
     """Cut a mesh placed by ``_on_bed`` at planes j0 .. j1 - 1 and measure the cuts (pure numpy:
     runs in a forked helper). At a plane through a flat face the cut is measured against the exact
-    outlines above and below the face, and keeps the better match."""
+    outlines above and below the face, and keeps the better match. ``crossings``: where the cut
+    crosses itself is looked for too."""
     cut = offset_cut(cut_mesh(v, tr, heights[j0:j1]), j0, n_planes)
+    pockets = tuple(self_crossings(cut)) if crossings else ()
     met = compare(cut, ref_set, ref_perimeter, n_planes, workers=workers)
     side = np.zeros(n_planes, dtype=np.int8)
     if below is not None:
@@ -826,11 +833,11 @@ def _measure_planes(
     if j0 == 0:
         open_edges, nonmanifold = edge_defects(tr, len(v)) if len(tr) else (0, 0)
         mesh_wide = (open_edges, nonmanifold, signed_volume(v, tr) if len(tr) else 0.0)
-    return _Measured(part, mesh_wide, side[j0:j1])
+    return _Measured(part, mesh_wide, side[j0:j1], pockets)
 
 
 def _measure_pieces(
-    pieces: list[tuple[np.ndarray, np.ndarray, int, int]],
+    pieces: list[tuple[np.ndarray, np.ndarray, int, int, bool]],
     heights: np.ndarray,
     ref_set: SegmentSet,
     ref_perimeter: np.ndarray,
@@ -838,10 +845,10 @@ def _measure_pieces(
     n_planes: int,
     workers: int,
 ) -> list[_Measured]:
-    """``_measure_planes`` for each (vertices, triangles, j0, j1) piece, in one helper."""
+    """``_measure_planes`` for each (vertices, triangles, j0, j1, crossings) piece, in one helper."""
     return [
-        _measure_planes(v, tr, heights, j0, j1, ref_set, ref_perimeter, below, n_planes, workers)
-        for v, tr, j0, j1 in pieces
+        _measure_planes(v, tr, heights, j0, j1, ref_set, ref_perimeter, below, n_planes, workers, check)
+        for v, tr, j0, j1, check in pieces
     ]
 
 
@@ -1081,6 +1088,26 @@ def _on_a_face(faces: list[_FaceProbe], p: tuple[float, float, float], tol: floa
         if probe.on_face(q, tol):
             return max_tolerance(probe.face, TopAbs_EDGE)
     return None
+
+
+def _self_crossing_warning(
+    pockets: list[tuple[int, float, float]], planes_z: np.ndarray, chord: float
+) -> str | None:
+    """The warning for a DST mesh whose contour crosses itself round more than a chord-budget
+    square at some plane (``deviation.self_crossings``; bow ties of points out of order by
+    micrometres, with no such pocket, are left out)."""
+    big = [(j, area, length) for j, area, length in pockets if area > chord * chord]
+    if not big:
+        return None
+    j, area, length = max(big, key=lambda p: p[1])
+    planes = sorted({p[0] for p in big})
+    size = "a strip where the contour turns over" if not np.isfinite(area) else f"{area:.3g} mm^2"
+    return (
+        f"the DST mesh's contour crosses itself at {len(planes)} plane(s) (the largest pocket: {size}, "
+        f"at z = {planes_z[j]:.4f} mm): a fault of this build (its ring out of order there, or a strip "
+        "of its triangles folded over) that slicers see as a self-intersecting outline, and that the "
+        "per-layer deviations need not show"
+    )
 
 
 def _mesh_warnings(r: MeshReport) -> list[str]:

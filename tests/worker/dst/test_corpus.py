@@ -23,7 +23,6 @@ from tests.worker.dst.meshcheck import (
     distance_to_faces,
     occt_section_points,
     ring_edges,
-    ring_self_crossings,
 )
 from worker.dst.errors import DstError
 from worker.dst.params import ROTATION_FIELDS, SliceParams
@@ -164,16 +163,6 @@ def _check_against_exact_sections(mesh) -> None:
             )
 
 
-def _check_rings_do_not_loop(mesh) -> None:
-    """No ring of the mesh, as a slicer cuts it, winds round a pocket of its own: where a loop crosses
-    itself (out-of-order exact points a few micrometres apart: a bow tie, or a spur along a wall),
-    what lies between the crossing segments has no more area than a chord-budget square (trj4 once
-    had a 2.3 mm hole wound three times: pockets of 0.35 mm^2)."""
-    budget = mesh.params.chord_error
-    pockets = [(j, area, length) for j, area, length in ring_self_crossings(mesh) if area > budget**2]
-    assert not pockets, "rings crossing themselves round (plane, area mm^2, length mm): " + str(pockets[:6])
-
-
 def _case(p: Path):
     marks = []
     if p.name in SLOW:
@@ -239,7 +228,6 @@ def test_corpus_file(path: Path, tmp_path):
     vol = mesh.stats["mesh_volume_mm3"] / mesh.part.volume_mm3
     assert 0.97 < vol < 1.03, f"volume ratio {vol}"
     _check_against_exact_sections(mesh)
-    _check_rings_do_not_loop(mesh)
     _check_every_plane(mesh, path)
 
 
@@ -261,6 +249,10 @@ def _check_every_plane(mesh, path: Path, key: str | None = None) -> None:
             bad.append(f"z = {layer.z:.4f}: chord_dev {layer.chord_dev:.4g} mm")
         elif layer.loops + layer.open_chains != layer.loops_exact:
             bad.append(f"z = {layer.z:.4f}: {layer.loops} loops cut, {layer.loops_exact} exact")
+    # no contour crossing itself round a pocket (trj4 once wound a 2.3 mm hole three times at z = 1.3:
+    # pockets of 0.35 mm^2 that no per-layer deviation showed; the bow ties left, of points out of
+    # order by micrometres, have none)
+    assert not [w for w in report.warnings if "crosses itself" in w], report.warnings
     gaps = [w for w in report.warnings if "reference misses part of the section" in w]
     key = key or path.name  # what KNOWN_PLANE_DEVIATIONS and REFERENCE_GAPS know the case by
     if key in REFERENCE_GAPS:
@@ -362,5 +354,4 @@ def test_corpus_file_turned(path: Path):
     per_plane = len(mesh.triangles) / len(mesh.planes)
     assert per_plane < 3.0 * len(unturned.triangles) / len(unturned.planes)
     _check_against_exact_sections(mesh)
-    _check_rings_do_not_loop(mesh)
     _check_every_plane(mesh, path, f"{path.name} turned {TURNED[path.name]}")

@@ -19,6 +19,7 @@ from worker.dst.deviation import (
     max_per_plane,
     midpoints,
     segment_neighbours,
+    self_crossings,
     span_curvatures,
     span_max,
 )
@@ -359,3 +360,26 @@ def test_measuring_only_the_points_that_can_matter_gives_the_same_maxima(n_ring,
     np.testing.assert_array_equal(m.vertex_dev, vertex_dev)
     np.testing.assert_array_equal(m.chord_dev, chord_dev)
     assert pruned < 0.7 * sum(searched)
+
+
+def test_self_crossings_find_the_pockets_a_loop_winds_round():
+    """A loop through points of a circle crosses itself nowhere in order; with two neighbours
+    swapped it makes a bow tie (a pocket of no area); going round three times (each step 3/25 of a
+    turn) it crosses itself everywhere, round pockets of the circle's own size."""
+    r, n = 5.0, 25
+    z = np.array([0.0, 1.0, 2.0])
+    in_order = circle(r, n)
+    swapped = in_order.copy()
+    swapped[[7, 8]] = swapped[[8, 7]]
+    thrice = circle(r, n)[(3 * np.arange(n)) % n]
+    found = {}
+    for name, ring in (("in order", in_order), ("swapped", swapped), ("thrice", thrice)):
+        v, t = stacked([in_order, ring, in_order], z)
+        found[name] = self_crossings(cut_mesh(v, t, np.array([1.0])))
+    assert found["in order"] == []
+    assert len(found["swapped"]) == 1
+    (plane, area, length) = found["swapped"][0]
+    assert plane == 0 and area == pytest.approx(0.0, abs=1e-12)
+    assert length == pytest.approx(np.linalg.norm(in_order[8] - in_order[7]))
+    assert len(found["thrice"]) >= n and all(p == 0 for p, _, _ in found["thrice"])
+    assert max(a for _, a, _ in found["thrice"]) > 1.0  # against a 0.025 mm budget's 6e-4 mm^2

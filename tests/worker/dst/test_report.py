@@ -490,6 +490,31 @@ def test_slicer_presets_say_they_are_parameters_on_this_occt_not_the_slicers_mes
     assert slicer_preset_warning(["bambu_orca"]).startswith("baseline(s) bambu_orca are made with")
 
 
+def test_a_dst_contour_crossing_itself_is_named_in_a_warning(hemisphere):
+    """The report looks for places where the DST mesh's contour crosses itself (a ring out of order:
+    trj4_k1_top-pe-214 once wound a hole three times, which no per-layer deviation shows) and warns
+    where one winds round more than a chord-budget square; the hemisphere's own mesh has none."""
+    path, mesh, report, _ = hemisphere
+    assert not [w for w in report.warnings if "crosses itself" in w]
+    j = len(mesh.planes.section_z) // 2
+    ring = np.flatnonzero(mesh.vertex_plane == j)
+    angle = np.arctan2(mesh.vertices[ring, 1], mesh.vertices[ring, 0])
+    ring = ring[np.argsort(angle)]
+    a, b = ring[0], ring[len(ring) // 3]  # a third of a turn apart: the ring now cuts across
+    moved = mesh.vertices.copy()
+    moved[[a, b], :2] = moved[[b, a], :2]
+    bad = build_report(
+        mesh.part,
+        mesh.params,
+        file_name=str(path),
+        dst=dataclasses.replace(mesh, vertices=moved),
+        baselines=[],
+    )
+    (warning,) = [w for w in bad.warnings if "crosses itself" in w]
+    assert warning.startswith("the DST mesh's contour crosses itself at 1 plane(s)")
+    assert f"at z = {mesh.planes.z[j]:.4f} mm" in warning
+
+
 def test_unknown_baseline_is_refused():
     from worker.dst.errors import InvalidParameters
 
@@ -863,7 +888,7 @@ def test_the_reports_own_process_measures_a_share_beside_its_helpers(hemisphere,
 
     def logged(pieces, *args):
         with open(log, "a") as fh:
-            fh.writelines(f"{os.getpid() == main} {len(tr)} {j0} {j1}\n" for _, tr, j0, j1 in pieces)
+            fh.writelines(f"{os.getpid() == main} {len(tr)} {j0} {j1}\n" for _, tr, j0, j1, _ in pieces)
         return real(pieces, *args)
 
     monkeypatch.setattr(report_mod, "_measure_pieces", logged)
