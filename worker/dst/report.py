@@ -685,7 +685,7 @@ def _build_report(
     for m in todo:
         if m.kind == "dst" and (
             note := _self_crossing_warning(
-                [p for part in measured[id(m)] for p in part.pockets], planes_z, params.chord_error
+                [p for piece in measured[id(m)] for p in piece.pockets], planes_z, params.chord_error
             )
         ):
             warnings.append(note)
