@@ -158,9 +158,14 @@ def _occt_side(
     return _exact_extent(part) if exact else None
 
 
+def _not_the_apps_mesh(preset: Preset) -> bool:
+    """A slicer's preset meshed here on another OCCT release than the slicer links."""
+    return preset.app is not None and preset.app_occt != occt_version()
+
+
 def _app_note(preset: Preset) -> str:
     """What a slicer preset's mesh is not, where the slicer links another OCCT release."""
-    if preset.app is None or preset.app_occt == occt_version():
+    if not _not_the_apps_mesh(preset):
         return ""
     return (
         f"; {preset.app} itself links OCCT {preset.app_occt}, whose mesher makes another mesh from "
@@ -171,11 +176,10 @@ def _app_note(preset: Preset) -> str:
 def slicer_preset_warning(baselines: Sequence[str]) -> str | None:
     """The warning a report carries when it compares with slicer presets made on another OCCT than
     the slicers link: those baselines are the slicers' parameters, not their meshes."""
-    presets = {n: BASELINE_PRESETS[n] for n in baselines}
-    other = [n for n, p in presets.items() if p.app is not None and p.app_occt != occt_version()]
+    other = [n for n in baselines if _not_the_apps_mesh(BASELINE_PRESETS[n])]
     if not other:
         return None
-    apps = sorted({f"{presets[n].app} OCCT {presets[n].app_occt}" for n in other})
+    apps = sorted({f"{BASELINE_PRESETS[n].app} OCCT {BASELINE_PRESETS[n].app_occt}" for n in other})
     return (
         f"baseline(s) {', '.join(other)} are made with those slicers' STEP-import meshing parameters on "
         f"OCCT {occt_version()}, not by the slicers: they link older OCCT releases ({'; '.join(apps)}), "

@@ -1050,8 +1050,19 @@ class RingSampler:
         ku, kv = self._surface_kinks(run.face)
         if not (ku.size or kv.size):
             return []
-        cuts = []
+        ev = self.mesh.faces[run.face]
         ends_uv: list[tuple[float, float]] = []  # the run's exact ends' (u, v), found when needed
+
+        def ends_straddle(axis: int, k: float) -> bool:
+            """Whether the run's exact ends lie on either side of the line (or one on it)."""
+            if not ends_uv:
+                ends_uv.extend(
+                    ev.uv_near(tuple(map(float, self.pool.xyz[v])), tuple(map(float, uv)))
+                    for v, uv in ((run.start, run.uv[0]), (run.end, run.uv[-1]))
+                )
+            return (ends_uv[0][axis] - k) * (ends_uv[1][axis] - k) <= 0.0
+
+        cuts = []
         for axis, lines in ((0, ku), (1, kv)):
             w = run.uv[:, axis]
             for k in lines.tolist():
@@ -1070,23 +1081,14 @@ class RingSampler:
                     # beyond the face's trim the line is crossed on the surface's extension, not on
                     # the B-rep (past a corner of the run: tangent_features turned (-178.1, 115.6,
                     # 106.9) had a corner 2.3 um off its faces at z = 9.9)
-                    if hit is not None and not self.mesh.faces[run.face].contains(*hit[0], tol=TRIM_TOL_MM):
+                    if hit is not None and not ev.contains(*hit[0], tol=TRIM_TOL_MM):
                         self.stats.outside_face_points += 1
                         hit = None
                     # The seed path crosses the line, but the exact curve between the run's exact
                     # ends may not: an end solved past the line (boxed_sphere at z = 0.1, a rounded
                     # corner's C0 line 0.03 mm beyond the crossing) puts the line's point outside the
                     # run, and the ring would step back to it and forth again (a bow tie).
-                    if hit is not None:
-                        if not ends_uv:
-                            ev = self.mesh.faces[run.face]
-                            ends_uv = [
-                                ev.uv_near(tuple(map(float, self.pool.xyz[v])), tuple(map(float, uv)))
-                                for v, uv in ((run.start, run.uv[0]), (run.end, run.uv[-1]))
-                            ]
-                        if (ends_uv[0][axis] - k) * (ends_uv[1][axis] - k) > 0.0:
-                            hit = None
-                    if hit is not None:
+                    if hit is not None and ends_straddle(axis, k):
                         s_at = float(run.s[i] + t * (run.s[i + 1] - run.s[i]))
                         cuts.append((s_at, hit[0], hit[1]))
         cuts.sort(key=lambda c: c[0])
