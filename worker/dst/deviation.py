@@ -25,6 +25,7 @@ _QUERY_CHUNK = 8192  # queries per nearest-segment search step
 _FIRST_RADIUS_MM = 0.5  # see SegmentSet._nearest
 CORNER_RAD = 1.0  # a reference polyline turning more than this (rad) at a vertex has a corner there
 _PLANE_SEPARATION_MM = 1e7  # farther than any two points of a part in one plane
+_PAIR_PIECES = 2.0  # see _segment_pairs_near
 
 
 @dataclass
@@ -141,27 +142,10 @@ def self_crossings(cut: MeshCut) -> list[tuple[int, float, float]]:
     Loops that cross other loops are not looked at (an assembly's solids may overlap). A loop whose
     points came out of order by micrometres makes a bow tie with no pocket to speak of; one that
     goes round a hole three times, a pocket of the hole's area."""
-    a, b = cut.seg[:, 0], cut.seg[:, 1]
-    if len(a) < 4:
-        return []
-    lift = cut.seg_plane * _PLANE_SEPARATION_MM  # each plane's segments far from every other's
-    mid = np.column_stack([0.5 * (a + b), lift])
-    reach = float(np.linalg.norm(b - a, axis=1).max())
-    pairs = cKDTree(mid).query_pairs(reach + 1e-12, output_type="ndarray")
-    i, k = pairs[:, 0], pairs[:, 1]
-    node = cut.seg_node
-    apart = ~(node[i][:, :, None] == node[k][:, None, :]).any(axis=(1, 2))  # no end in common
-    i, k = i[apart], k[apart]
-
-    def side(p: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
-        return np.sign((q[:, 0] - p[:, 0]) * (r[:, 1] - p[:, 1]) - (q[:, 1] - p[:, 1]) * (r[:, 0] - p[:, 0]))
-
-    cross = (side(a[i], b[i], a[k]) * side(a[i], b[i], b[k]) < 0) & (
-        side(a[k], b[k], a[i]) * side(a[k], b[k], b[i]) < 0
-    )
-    i, k = i[cross], k[cross]
+    i, k = _crossing_segments(cut)
     if not len(i):
         return []
+    node = cut.seg_node
     n = len(cut.vertices)
     graph = coo_matrix((np.ones(len(node)), (node[:, 0], node[:, 1])), shape=(n, n))
     _, loop_of = connected_components(graph, directed=False)
@@ -187,6 +171,120 @@ def self_crossings(cut: MeshCut) -> list[tuple[int, float, float]]:
             best = min(best, (length, area))
         out.append((int(cut.seg_plane[s]), best[1], best[0]))
     return out
+
+
+def loop_self_crossings(
+    loops: list[list[np.ndarray]], nearest: int | None = None
+) -> list[tuple[int, float, float]]:
+    """``self_crossings`` of closed polylines per plane (first point not repeated), each loop's
+    points in order: its pockets from prefix sums along the loop (the shoelace terms and the
+    segment lengths), at once for every crossing (a walk per crossing took minutes on a reference
+    tangled into thousands of crossings at one plane). ``nearest``: a bounded pair search (see
+    ``_segment_pairs_near``)."""
+    cut = loops_cut(loops)
+    i, k = _crossing_segments(cut, nearest)
+    if not len(i):
+        return []
+    sizes = np.array([len(p) for ls in loops for p in ls], dtype=np.int64)
+    start = np.cumsum(sizes) - sizes  # each loop's first vertex (= first segment)
+    loop_of = np.repeat(np.arange(len(sizes)), sizes)
+    same = loop_of[i] == loop_of[k]
+    i, k = i[same], k[same]
+    if not len(i):
+        return []
+    # per loop, centred (small shoelace terms), prefix sums of x_i y_i+1 - y_i x_i+1 and of lengths
+    p = cut.vertices - np.repeat(np.array([q.mean(axis=0) for ls in loops for q in ls]), sizes, axis=0)
+    q = p[cut.seg_node[:, 1]]
+    term = p[:, 0] * q[:, 1] - p[:, 1] * q[:, 0]
+    length = np.linalg.norm(q - p, axis=1)
+    offset = start + np.arange(len(sizes))  # each loop's prefix sums: sizes + 1 values
+    first = np.zeros(len(p) + len(sizes), dtype=bool)
+    first[offset] = True
+    at = np.flatnonzero(~first)
+
+    def prefix(values: np.ndarray) -> np.ndarray:
+        out = np.zeros(len(first))
+        out[at] = values
+        out = np.cumsum(out)
+        return out - np.repeat(out[offset], sizes + 1)
+
+    term_sum, length_sum = prefix(term), prefix(length)
+    lp, m = loop_of[i], sizes[loop_of[i]]
+
+    def along(u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(length, area) of the path from local vertex u forward to v, closed by the chord v-u."""
+        o = offset[lp]
+        whole = np.where(v >= u, 0.0, 1.0)
+
+        def span(total: np.ndarray) -> np.ndarray:
+            return total[o + v] - total[o + u] + whole * total[o + m]
+
+        pu, pv = p[start[lp] + u], p[start[lp] + v]
+        close = pv[:, 0] * pu[:, 1] - pv[:, 1] * pu[:, 0]
+        return span(length_sum), 0.5 * np.abs(span(term_sum) + close)
+
+    li, lk = i - start[lp], k - start[lp]  # local segment (= start vertex) indices
+    one = along((li + 1) % m, lk)  # from the end of segment i to the start of segment k
+    other = along((lk + 1) % m, li)
+    shorter = (one[0] < other[0]) | ((one[0] == other[0]) & (one[1] <= other[1]))
+    plane = cut.seg_plane[i]
+    return [
+        (int(j), float(area), float(size))
+        for j, area, size in zip(
+            plane, np.where(shorter, one[1], other[1]), np.where(shorter, one[0], other[0]), strict=True
+        )
+    ]
+
+
+def _crossing_segments(cut: MeshCut, nearest: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs (i, k) of segments of one plane of ``cut`` with no end in common that cross (``nearest``:
+    see ``_segment_pairs_near``)."""
+    a, b = cut.seg[:, 0], cut.seg[:, 1]
+    if len(a) < 4:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    i, k = _segment_pairs_near(a, b, cut.seg_plane, nearest)
+    node = cut.seg_node
+    apart = ~(node[i][:, :, None] == node[k][:, None, :]).any(axis=(1, 2))  # no end in common
+    i, k = i[apart], k[apart]
+
+    def side(p: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
+        return np.sign((q[:, 0] - p[:, 0]) * (r[:, 1] - p[:, 1]) - (q[:, 1] - p[:, 1]) * (r[:, 0] - p[:, 0]))
+
+    cross = (side(a[i], b[i], a[k]) * side(a[i], b[i], b[k]) < 0) & (
+        side(a[k], b[k], a[i]) * side(a[k], b[k], b[i]) < 0
+    )
+    return i[cross], k[cross]
+
+
+def _segment_pairs_near(
+    a: np.ndarray, b: np.ndarray, plane: np.ndarray, nearest: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs (i, k), i < k, of segments a-b of one plane that may cross: each segment split into pieces
+    no longer than ``_PAIR_PIECES`` times the median segment (two crossing pieces have midpoints within
+    that length), so that a few long segments (a dense reference's 2 mm spans along straight edges)
+    do not widen the search for all the short ones. ``nearest``: only each piece's that many nearest
+    pieces (a bounded search: in a tangle of thousands of points within that length some pairs are
+    then left out)."""
+    length = np.linalg.norm(b - a, axis=1)
+    reach = max(_PAIR_PIECES * float(np.median(length)), 1e-9)
+    m = np.maximum(1, np.ceil(length / reach).astype(np.int64))
+    owner = np.repeat(np.arange(len(a)), m)
+    t = (np.arange(len(owner)) - np.repeat(np.cumsum(m) - m, m) + 0.5) / m[owner]
+    mid = a[owner] + t[:, None] * (b - a)[owner]
+    lift = plane[owner] * _PLANE_SEPARATION_MM  # each plane's segments far from every other's
+    tree = cKDTree(np.column_stack([mid, lift]))
+    if nearest is None:
+        pairs = tree.query_pairs(reach * (1.0 + 1e-9), output_type="ndarray")
+        i, k = owner[pairs[:, 0]], owner[pairs[:, 1]]
+    else:
+        _, idx = tree.query(
+            tree.data, k=min(nearest + 1, len(owner)), distance_upper_bound=reach * (1.0 + 1e-9)
+        )
+        idx = idx.reshape(len(owner), -1)
+        found = idx < len(owner)
+        i, k = owner[np.nonzero(found)[0]], owner[idx[found]]
+    key = np.unique((np.minimum(i, k) * len(a) + np.maximum(i, k))[i != k])
+    return key // len(a), key % len(a)
 
 
 def crossed_planes(tri_z: np.ndarray, heights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -254,6 +352,27 @@ def loops_to_segments(loops: list[list[np.ndarray]]) -> tuple[np.ndarray, np.nda
     if not segs:
         return np.zeros((0, 2, 2)), np.zeros(0, dtype=np.int64)
     return np.concatenate(segs), np.concatenate(planes)
+
+
+def loops_cut(loops: list[list[np.ndarray]]) -> MeshCut:
+    """Closed polylines per plane (first point not repeated) as a ``MeshCut``: each loop's points its
+    own vertices, joined in order."""
+    pts = [p for ls in loops for p in ls]
+    sizes = np.array([len(p) for p in pts], dtype=np.int64)
+    vertices = np.concatenate(pts) if pts else np.zeros((0, 2))
+    start = np.repeat(np.cumsum(sizes) - sizes, sizes)
+    k = np.arange(len(vertices)) - start
+    seg_node = np.column_stack([start + k, start + (k + 1) % np.repeat(sizes, sizes)]).reshape(-1, 2)
+    seg_plane = np.repeat(np.array([j for j, ls in enumerate(loops) for _ in ls], dtype=np.int64), sizes)
+    return MeshCut(
+        seg=vertices[seg_node].reshape(-1, 2, 2),
+        seg_plane=seg_plane,
+        loops=np.array([len(ls) for ls in loops], dtype=np.int64),
+        open_chains=np.zeros(len(loops), dtype=np.int64),
+        vertices=vertices,
+        vertex_plane=seg_plane.copy(),
+        seg_node=seg_node,
+    )
 
 
 def span_curvatures(
