@@ -1131,11 +1131,10 @@ def _reference_fault_warning(
     resolution: float,
 ) -> str | None:
     """The warning for an exact reference that crosses itself round more than a chord-budget square
-    (``deviation.self_crossings``) at a plane that holds a mesh's largest deviations: its points are
-    exact, but out of order there (a plane grazing a crest, or passing a saddle, where the sampler's
-    traces fail), and every mesh's chord_dev and perimeter_err at that plane measure the reference.
-    (``deviation.loop_self_crossings``: the same pockets.)
-    Looked for where it matters and is cheap: each mesh's ``REFERENCE_CHECK_PLANES`` planes of
+    (``deviation.loop_self_crossings``: the pockets ``self_crossings`` finds) at a plane that holds a
+    mesh's largest deviations: its points are exact, but out of order there (a plane grazing a crest,
+    or passing a saddle, where the sampler's traces fail), and the meshes' chord_dev and perimeter_err
+    at that plane may measure the reference. Looked for where it matters and is cheap: each mesh's ``REFERENCE_CHECK_PLANES`` planes of
     largest chord_dev and of largest perimeter_err, and every plane where DST is over its budget
     (a search of every plane costs 0.2 s on ec_soapbox-A)."""
     check: set[int] = set()
@@ -1160,10 +1159,9 @@ def _reference_fault_warning(
         return None
     j, area = max(big, key=lambda p: p[1])
     planes = sorted({p[0] for p in big})
-    size = "a stretch where it turns back on itself" if not np.isfinite(area) else f"{area:.3g} mm^2"
-    return (
+    return (  # (closed loops in order: every pocket is finite)
         f"the report's exact reference is out of order at {len(planes)} plane(s) that hold the meshes' "
-        f"largest deviations (the largest pocket between its crossing segments: {size}, at z = "
+        f"largest deviations (the largest pocket between its crossing segments: {area:.3g} mm^2, at z = "
         f"{planes_z[j]:.4f} mm; plane(s) {', '.join(map(str, planes[:10]))}): its points lie on the "
         "section but are joined in the wrong order there (a plane grazing a crest or passing near a "
         "saddle, or faces and edges that disagree), so the meshes' chord_dev and perimeter_err at those "
