@@ -1134,9 +1134,9 @@ def _reference_fault_warning(
     (``deviation.loop_self_crossings``: the pockets ``self_crossings`` finds) at a plane that holds a
     mesh's largest deviations: its points are exact, but out of order there (a plane grazing a crest,
     or passing a saddle, where the sampler's traces fail), and the meshes' chord_dev and perimeter_err
-    at that plane may measure the reference. Looked for where it matters and is cheap: each mesh's ``REFERENCE_CHECK_PLANES`` planes of
-    largest chord_dev and of largest perimeter_err, and every plane where DST is over its budget
-    (a search of every plane costs 0.2 s on ec_soapbox-A)."""
+    at that plane may measure the reference. Looked for where it matters and is cheap: each mesh's
+    ``REFERENCE_CHECK_PLANES`` planes of largest chord_dev and of largest perimeter_err, and every
+    plane where DST is over its budget (a search of every plane costs 0.2 s on ec_soapbox-A)."""
     check: set[int] = set()
     for r in results:
         chord_dev = np.array([np.nan if x.chord_dev is None else x.chord_dev for x in r.layers])

@@ -471,16 +471,7 @@ class RingSampler:
         whole = {k % n for k in range(wide[0], wide[1] + 1)}
         if any({k % n for k in range(a + 1, b)} & whole for a, b, _ in others):
             return None
-        j_plane = int(self.topo.loops[li][0])
-        run = self._traced_run(
-            face,
-            ring[wide[0] % n],
-            ring[wide[1] % n],
-            float(self.topo.planes[j_plane]),
-            j_plane,
-            between=[ring[k % n] for k in range(wide[0] + 1, wide[1])],
-            elsewhere=_segments_beside(self.pool.xyz[ring, :2], *wide),
-        )
+        run = self._stretch_run(li, ring, self.pool.xyz[ring, :2], face, *wide)
         pts = None if run is None else self._sample_traced([run])[0]
         return None if pts is None else (wide[0], wide[1], pts[1:-1])
 
@@ -664,8 +655,6 @@ class RingSampler:
             pieces.sort()
         else:
             pieces = [(k, k + 1) for k in ks]
-        j_plane = int(self.topo.loops[li][0])
-        zc = float(self.topo.planes[j_plane])
         out = []
         taken: set[int] = set()  # vertices of the stretches so far (widened ones must not overlap)
 
@@ -685,15 +674,7 @@ class RingSampler:
             if face is None or corner[inner].any() or any(face_of.get(ring[k]) != face for k in inner):
                 self.stats.excursion_failures += 1  # crosses a face boundary: not traced
                 continue
-            run = self._traced_run(
-                face,
-                ring[i],
-                ring[j % n],
-                zc,
-                j_plane,
-                between=[ring[k] for k in inner],
-                elsewhere=_segments_beside(p, i, j),
-            )
+            run = self._stretch_run(li, ring, p, face, i, j)
             if run is None and stretches:
                 # Out of order over a bend the trace from ring[i] cannot reach ring[j] from (the
                 # ring passes M6-1x12-countersunk-screw's U-shaped section four times, the trace
@@ -708,15 +689,7 @@ class RingSampler:
                     if (taken - freed) & whole:
                         wide = None  # it would overlap a stretch beyond the run
                 if wide is not None:
-                    wide_run = self._traced_run(
-                        face,
-                        ring[wide[0]],
-                        ring[wide[1] % n],
-                        zc,
-                        j_plane,
-                        between=[ring[k % n] for k in range(wide[0] + 1, wide[1])],
-                        elsewhere=_segments_beside(p, *wide),
-                    )
+                    wide_run = self._stretch_run(li, ring, p, face, *wide)
                     if wide_run is not None:
                         out = [o for o in out if o not in inside]
                         taken -= freed
@@ -726,6 +699,22 @@ class RingSampler:
                 if stretches:
                     taken |= span(i, j)
         return out
+
+    def _stretch_run(self, li: int, ring: list[int], p: np.ndarray, face: int, i: int, j: int) -> _Run | None:
+        """``_traced_run`` of loop ``li``'s ring (its x/y ``p``) from ring[i] to ring[j] on ``face``
+        (indices modulo its length, j > i): the ring's vertices between them as ``between``, its
+        segments beside the stretch as ``elsewhere``."""
+        n = len(ring)
+        plane = int(self.topo.loops[li][0])
+        return self._traced_run(
+            face,
+            ring[i % n],
+            ring[j % n],
+            float(self.topo.planes[plane]),
+            plane,
+            between=[ring[k % n] for k in range(i + 1, j)],
+            elsewhere=_segments_beside(p, i, j),
+        )
 
     def _run_ends(
         self, ring: list[int], face_of: dict[int, int], face: int, corner: np.ndarray, i: int, j: int

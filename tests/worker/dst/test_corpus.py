@@ -261,16 +261,14 @@ def _check_every_plane(mesh, path: Path, key: str | None = None) -> None:
     # pockets of 0.35 mm^2 that no per-layer deviation showed; the bow ties left, of points out of
     # order by micrometres, have none)
     assert not [w for w in report.warnings if "crosses itself" in w], report.warnings
+    key = key or path.name  # what the KNOWN_... dicts and REFERENCE_GAPS know the case by
     # nor the reference out of order where the meshes' largest deviations are (but where it is known)
     faults = [w for w in report.warnings if "exact reference is out of order" in w]
-    if (key or path.name) in KNOWN_REFERENCE_FAULTS:
-        assert (
-            len(faults) == 1 and f"at z = {KNOWN_REFERENCE_FAULTS[key or path.name]:.4f} mm" in faults[0]
-        ), faults
+    if key in KNOWN_REFERENCE_FAULTS:
+        assert len(faults) == 1 and f"at z = {KNOWN_REFERENCE_FAULTS[key]:.4f} mm" in faults[0], faults
     else:
         assert not faults, faults
     gaps = [w for w in report.warnings if "reference misses part of the section" in w]
-    key = key or path.name  # what KNOWN_PLANE_DEVIATIONS and REFERENCE_GAPS know the case by
     if key in REFERENCE_GAPS:
         assert len(gaps) == 1 and REFERENCE_GAPS[key] in gaps[0], gaps
     else:
