@@ -37,6 +37,11 @@ TRACE_ARRIVAL_COS = math.cos(math.radians(30.0))
 TRACE_MIN_STEP_MM = 1e-6  # a bend needing shorter steps is a cusp of the section: the trace gives up
 TRACE_MAX_STEPS = 20_000
 
+# ``FaceEval.uv_near``: a point this close to the surface (mm) is taken as lying on it, its (u, v)
+# found by Newton (at most this many steps) from the seed
+UV_NEAR_TOL_MM = 1e-9
+UV_NEAR_MAX_ITER = 8
+
 _RTOL = 4.5 * 2.220446049250313e-16  # brentq refuses anything below 4 * machine epsilon
 
 
@@ -88,7 +93,15 @@ class FaceEval:
         self._fclass: dict[float, IntTools_FClass2d] = {}
 
     def uv_near(self, xyz: tuple[float, float, float], seed: tuple[float, float]) -> tuple[float, float]:
-        """(u, v) of a point on the surface, on the parameter branch nearest ``seed`` (periodic surfaces)."""
+        """(u, v) of a point on the surface, on the parameter branch nearest ``seed`` (periodic surfaces).
+
+        A point lying on the surface (within ``UV_NEAR_TOL_MM``) is found by Newton from the seed;
+        any other (off the surface by an edge's tolerance, or Newton failing: a pole, a seed too far)
+        by ``ShapeAnalysis_Surface.NextValueOfUV``, which took 0.3 ms a point on a B-spline surface
+        even for points on it (0.06 s of the hemisphere's 0.41 s DST build)."""
+        uv = self._newton_uv(xyz, seed)
+        if uv is not None:
+            return self.same_branch(uv, seed)
         if self._sas is None:
             self._sas = ShapeAnalysis_Surface(BRep_Tool.Surface_s(self.face))
         p = self._sas.NextValueOfUV(
@@ -97,6 +110,51 @@ class FaceEval:
         # the projection can come back on another period than the seed's (a torus face running past
         # v = 2 pi: seeded at v = 6.32, it gave v = 0)
         return self.same_branch((p.X(), p.Y()), seed)
+
+    def _newton_uv(
+        self, xyz: tuple[float, float, float], seed: tuple[float, float]
+    ) -> tuple[float, float] | None:
+        """(u, v) where the surface passes within ``UV_NEAR_TOL_MM`` of ``xyz``, by Gauss-Newton on
+        the distance from ``seed`` (one step more once there: the projection refines to rounding).
+        None if it does not get there in ``UV_NEAR_MAX_ITER`` steps, the surface's tangents are
+        degenerate on the way, or it ends beyond the parameter box in a direction that does not
+        wrap (on the surface's extension, or at another parameter of the same point, as a sphere's
+        v past a pole, which the face's trim does not hold)."""
+        p, du, dv = self._p, self._du, self._dv
+        px, py, pz = xyz
+        u, v = float(seed[0]), float(seed[1])
+        there: tuple[float, float, float] | None = None  # (u, v, squared gap) within the tolerance
+        for _ in range(UV_NEAR_MAX_ITER):
+            self.ad.D1(u, v, p, du, dv)
+            rx, ry, rz = px - p.X(), py - p.Y(), pz - p.Z()
+            gap2 = rx * rx + ry * ry + rz * rz
+            if there is not None:
+                if gap2 < there[2]:
+                    there = (u, v, gap2)
+                break
+            if gap2 <= UV_NEAR_TOL_MM * UV_NEAR_TOL_MM:
+                there = (u, v, gap2)
+            ux, uy, uz, vx, vy, vz = du.X(), du.Y(), du.Z(), dv.X(), dv.Y(), dv.Z()
+            a11 = ux * ux + uy * uy + uz * uz
+            a12 = ux * vx + uy * vy + uz * vz
+            a22 = vx * vx + vy * vy + vz * vz
+            det = a11 * a22 - a12 * a12
+            if not det > 1e-12 * a11 * a22:  # (also NaN) a pole, or tangents nearly parallel
+                break
+            b1, b2 = ux * rx + uy * ry + uz * rz, vx * rx + vy * ry + vz * rz
+            u += (a22 * b1 - a12 * b2) / det
+            v += (a11 * b2 - a12 * b1) / det
+        if there is None:
+            return None
+        u, v = there[0], there[1]
+        for w, lo, hi, wraps in (
+            (u, self.u0, self.u1, self.ad.IsUPeriodic()),
+            (v, self.v0, self.v1, self.ad.IsVPeriodic()),
+        ):
+            margin = 1e-9 * max(hi - lo, 1.0)
+            if not wraps and not lo - margin <= w <= hi + margin:
+                return None
+        return u, v
 
     def period(self, axis: int) -> float:
         """The surface's period in u (``axis`` 0) or v (1), 0 if it is not periodic there."""

@@ -1,0 +1,93 @@
+"""Exact evaluation on faces: a point's own (u, v) on its face (``FaceEval.uv_near``)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from OCP.BRepAdaptor import BRepAdaptor_Surface
+from OCP.BRepBuilderAPI import BRepBuilderAPI_NurbsConvert
+from OCP.GeomAbs import GeomAbs_BSplineSurface, GeomAbs_Sphere, GeomAbs_Torus
+from OCP.TopAbs import TopAbs_FACE
+from OCP.TopExp import TopExp_Explorer
+from OCP.TopoDS import TopoDS
+
+from worker.dst.exact import FaceEval
+
+
+def _faces(shape) -> list[FaceEval]:
+    out = []
+    exp = TopExp_Explorer(shape, TopAbs_FACE)
+    while exp.More():
+        out.append(FaceEval(BRepAdaptor_Surface(TopoDS.Face(exp.Current()))))
+        exp.Next()
+    return out
+
+
+def _curved(kind: str) -> FaceEval:
+    import build123d as bd
+
+    solid = bd.Torus(15.0, 5.0) if kind == "torus" else bd.Sphere(20.0)
+    shape = solid.wrapped
+    if kind == "bspline":
+        shape = BRepBuilderAPI_NurbsConvert(shape, True).Shape()
+    want = {"sphere": GeomAbs_Sphere, "torus": GeomAbs_Torus, "bspline": GeomAbs_BSplineSurface}[kind]
+    (ev,) = [f for f in _faces(shape) if f.ad.GetType() == want]
+    return ev
+
+
+@pytest.mark.parametrize("kind", ["sphere", "torus", "bspline"])
+def test_a_point_on_its_face_gets_its_own_parameters_from_a_nearby_seed(kind):
+    """Points on the surface, seeded a little off their (u, v) as the sampler seeds them (from a
+    topology-mesh node): found by Newton (not the slow projection), at their own parameters."""
+    ev = _curved(kind)
+    rng = np.random.default_rng(7)
+    # away from a sphere's poles, where u is not defined
+    u = rng.uniform(ev.u0, ev.u1, 50)
+    v = rng.uniform(ev.v0 + 0.1 * (ev.v1 - ev.v0), ev.v1 - 0.1 * (ev.v1 - ev.v0), 50)
+    for ui, vi in zip(u.tolist(), v.tolist(), strict=True):
+        xyz = ev.point(ui, vi)
+        seed = (ui + 0.01 * (ev.u1 - ev.u0), vi - 0.01 * (ev.v1 - ev.v0))
+        assert ev._newton_uv(xyz, seed) is not None
+        got = ev.uv_near(xyz, seed)
+        assert got == pytest.approx((ui, vi), abs=1e-9)
+        assert ev.point(*got) == pytest.approx(xyz, abs=1e-10)
+
+
+def test_a_periodic_surfaces_parameters_come_on_the_seeds_branch():
+    """A torus's point seeded one period on (both directions wrap) comes back on the seed's period."""
+    ev = _curved("torus")
+    xyz = ev.point(1.0, 2.0)
+    tau = 2.0 * math.pi
+    got = ev.uv_near(xyz, (1.0 + tau + 0.01, 2.0 - tau - 0.01))
+    assert got == pytest.approx((1.0 + tau, 2.0 - tau), abs=1e-9)
+
+
+def test_newton_never_answers_with_a_parameter_the_face_does_not_hold():
+    """Seeded past a sphere's pole, Newton would land on the same point at v beyond the pole (the
+    sphere's other parametrisation of it), which the face's trim does not hold: the fast path
+    declines, and the answer is the point's parameters within the face's range."""
+    ev = _curved("sphere")
+    u, v = 0.5, 0.5 * math.pi - 0.05  # near the north pole
+    xyz = ev.point(u, v)
+    seed = (u + math.pi, 0.5 * math.pi + 0.06)  # the same point's mirror image past the pole, nearby
+    assert ev._newton_uv(xyz, seed) is None
+    got = ev.uv_near(xyz, seed)
+    assert ev.v0 <= got[1] <= ev.v1
+    assert ev.point(*got) == pytest.approx(xyz, abs=1e-9)
+
+
+def test_a_point_off_the_surface_gets_its_foot_point():
+    """A point off the surface (an edge's vertex within its tolerance of a face) is no Newton root:
+    it gets OCCT's projection, the nearest point of the surface."""
+    ev = _curved("bspline")
+    u, v = 1.0, 0.3
+    p = np.array(ev.point(u, v))
+    ev.ad.D1(u, v, ev._p, ev._du, ev._dv)
+    n = np.cross(ev._du.Coord(), ev._dv.Coord())
+    off = p + 1e-4 * n / np.linalg.norm(n)
+    assert ev._newton_uv(tuple(off), (u + 0.01, v)) is None
+    got = ev.uv_near(tuple(off), (u + 0.01, v))
+    assert got == pytest.approx((u, v), abs=1e-7)
+    assert np.linalg.norm(np.array(ev.point(*got)) - off) == pytest.approx(1e-4, rel=1e-6)
