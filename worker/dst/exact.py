@@ -261,11 +261,13 @@ class FaceEval:
         *,
         step: float,
         max_length: float,
+        min_length: float = 0.0,
     ) -> list[tuple[float, float, float, float]]:
         """From (u, v) on the section ``z = c``, follow that section curve forward (the loops'
         direction, ``section_direction``) until ``target`` (x, y) lies ahead of it within a step, the
         chord to it within 30 degrees of the curve's direction at both ends (``target_direction`` at
-        the target: the far side of a narrow tongue is just as near, but runs the other way).
+        the target: the far side of a narrow tongue is just as near, but runs the other way). It
+        does not arrive before ``min_length`` mm (a target at the start: once round a closed curve).
 
         Returns the points passed, (x, y, u, v), without the start and the target. Each step goes at
         most ``step`` mm along the tangent and is pulled back onto ``z = c``; a step over which the
@@ -293,6 +295,7 @@ class FaceEval:
                 along >= TRACE_ARRIVAL_COS * dist
                 and qx * target_direction[0] + qy * target_direction[1] >= TRACE_ARRIVAL_COS * dist
             )
+            ahead = ahead and length >= min_length
             if ahead and dist <= h:
                 return out
             if ahead and dist <= 2.0 * h:

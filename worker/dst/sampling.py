@@ -976,6 +976,50 @@ class RingSampler:
             self.stats.excursions += 1
         return self._pinned_ring(cl)
 
+    def traced_loop(self, li: int) -> list[int] | None:
+        """A ring of loop ``li`` from the exact section curve alone, for a loop on one face with no
+        corner: traced once round from its first crossing's exact point, then sampled to the budget
+        as two traced runs (from there to the trace's middle point and back). None where the loop
+        does not qualify or the trace or the sampling fails. (For a pinned loop whose crossings lie
+        so far inside a small curve that their exact points come out of order: ``tessellate``.)"""
+        topo = self.topo
+        j, cross = topo.loops[li]
+        faces = np.unique(self.mesh.tri_face[topo.seg_tri[cross]])
+        if len(faces) != 1 or topo.cross_is_corner[cross].any() or (topo.cross_node[cross] >= 0).any():
+            return None
+        face = int(faces[0])
+        zc = float(topo.planes[j])
+        ev = self.mesh.faces[face]
+        a = self.crossing(int(cross[0]))
+        xyz = self.pool.xyz
+        uv_a = _uv_of(ev, xyz[a])
+        direction = ev.section_direction(*uv_a)
+        if direction is None:
+            return None
+        try:
+            trace = ev.trace_level(
+                *uv_a,
+                zc,
+                (float(xyz[a, 0]), float(xyz[a, 1])),
+                direction,
+                step=self.seg_len,
+                max_length=max(EXCURSION_MAX_TRACE_MM, 100.0 * self.seg_len),
+                min_length=1e-9,  # leaves its start behind at once: arrives there once round
+            )
+        except ExactFailure:
+            return None
+        if len(trace) < 2:
+            return None
+        x, y, _, _ = trace[len(trace) // 2]
+        m = self.pool.add((x, y, zc), j)
+        runs = [self._traced_run(face, a, m, zc, j), self._traced_run(face, m, a, zc, j)]
+        if any(run is None for run in runs):
+            return None
+        halves = self._sample_traced(runs)
+        if any(h is None for h in halves):
+            return None
+        return _dedupe_cyclic(halves[0][:-1] + halves[1][:-1], self.pool)
+
     def _pinned_ring(self, cl: list[int]) -> list[int]:
         """The ring of a pinned loop's crossings ``cl`` (after ``pinned_loop``): each crossing, then
         its segment's inner points."""

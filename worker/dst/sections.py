@@ -50,6 +50,7 @@ class SectionTopology:
     tri_smin, piece_off       piece id of (triangle T, slab k) = piece_off[T] + k - tri_smin[T]
     piece_comp : (Q,) int64   component of each piece
     comp_is_annulus : (C,) bool
+    comp_euler : (C,) int64   Euler characteristic of each component (1: a disk)
     """
 
     z: np.ndarray
@@ -74,6 +75,7 @@ class SectionTopology:
     piece_off: np.ndarray
     piece_comp: np.ndarray
     comp_is_annulus: np.ndarray
+    comp_euler: np.ndarray
     comp_bottom: list[list[int]]
     comp_top: list[list[int]]
     cross_xyz: np.ndarray
@@ -270,6 +272,7 @@ def cut_topology(
         piece_off=piece_off,
         piece_comp=piece_comp,
         comp_is_annulus=comp_is_annulus,
+        comp_euler=euler,
         comp_bottom=comp_bottom,
         comp_top=comp_top,
         cross_xyz=cross_xyz,

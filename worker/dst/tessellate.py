@@ -32,6 +32,10 @@ def tessellate_solid(sampler: RingSampler) -> tuple[np.ndarray, dict]:
     rings: dict[int, list[int]] = sampler.free_loops(np.flatnonzero(free).tolist())
     for li in np.flatnonzero(~free).tolist():
         rings[li] = sampler.pinned_loop(li)
+    fans: dict[int, list[tuple[int, int, int]]] = {}  # cap component -> its fan
+    for li in np.flatnonzero(~free).tolist():
+        if fanned := _fanned_cap(sampler, li, rings[li]):
+            rings[li], comp, fans[comp] = fanned
 
     strips = [np.empty((0, 3), dtype=np.int64)]
     for comp in np.flatnonzero(annulus).tolist():
@@ -39,7 +43,7 @@ def tessellate_solid(sampler: RingSampler) -> tuple[np.ndarray, dict]:
         strips.append(zipper(rings[lb], rings[lt], sampler.pool))
     out: list[tuple[int, int, int]] = []
 
-    kept = ~annulus[topo.piece_comp]
+    kept = ~annulus[topo.piece_comp] & ~np.isin(topo.piece_comp, list(fans))
     pieces = np.flatnonzero(kept)
     n_kept_pieces = len(pieces)
     if n_kept_pieces:
@@ -55,6 +59,8 @@ def tessellate_solid(sampler: RingSampler) -> tuple[np.ndarray, dict]:
             out.append((sampler.node(na), sampler.node(nb), sampler.node(nc)))
         for t, k in zip(tri_of[~whole].tolist(), slab_of[~whole].tolist(), strict=True):
             out.extend(_piece_triangles(sampler, t, k))
+    for fan in fans.values():
+        out.extend(fan)
     # A ring that degenerates to one point (a dome top exactly on a plane) makes zipper triangles with
     # a repeated corner. Such a triangle adds the edges a->b and b->a, which cancel: dropping it keeps
     # the mesh closed.
@@ -66,8 +72,91 @@ def tessellate_solid(sampler: RingSampler) -> tuple[np.ndarray, dict]:
         "annulus_components": int(annulus.sum()),
         "kept_components": int((~annulus).sum()),
         "kept_pieces": n_kept_pieces,
+        "fanned_caps": len(fans),
     }
     return tris, stats
+
+
+def _fanned_cap(
+    sampler: RingSampler, li: int, ring: list[int]
+) -> tuple[list[int], int, list[tuple[int, int, int]]] | None:
+    """Where pinned loop ``li``'s ring crosses itself and the component it pins is a disk cap
+    bounded by that loop alone (the other side a zipper): the loop traced on the exact curve
+    (``RingSampler.traced_loop``) and the cap as a fan to it from its node farthest from the plane.
+    Returns (ring, cap component, fan triangles), or None where any of that does not hold or the
+    fan would fold (its apex not seeing the whole ring from inside).
+
+    A cap this small against the topology mesh has crossings far inside the exact curve, whose
+    exact points can come out of order: trj6_k1-al-214 turned (114.0, 17.7, 173.1) at z = 16.1,
+    a 0.58 mm bowl whose crossings lay up to 0.25 mm inside it, had a ring folded onto half the
+    curve (0.37 mm off the other half)."""
+    topo = sampler.topo
+    below, above = int(topo.loop_below[li]), int(topo.loop_above[li])
+    if topo.comp_is_annulus[below] == topo.comp_is_annulus[above]:
+        return None
+    cap_below = not topo.comp_is_annulus[below]
+    cap = below if cap_below else above
+    if topo.comp_bottom[cap] + topo.comp_top[cap] != [li] or topo.comp_euler[cap] != 1:
+        return None
+    pool = sampler.pool
+    if not _crosses_itself(pool.xyz[ring, :2]):
+        return None
+    traced = sampler.traced_loop(li)
+    if traced is None or len(traced) < 3 or _crosses_itself(pool.xyz[traced, :2]):
+        return None
+    j, cross = topo.loops[li]
+    # oriented as the topology loop (material on the left), as the zipper on the other side takes it
+    if np.sign(_signed_area(pool.xyz[traced, :2])) != np.sign(_signed_area(topo.cross_xyz[cross, :2])):
+        return None
+    pieces = np.flatnonzero(topo.piece_comp == cap)
+    tri_of = np.searchsorted(topo.piece_off, pieces, side="right") - 1
+    nodes = np.unique(sampler.mesh.tris[tri_of])
+    slab = j if cap_below else j + 1
+    nodes = nodes[topo.slab[nodes] == slab]
+    zc = float(topo.planes[j])
+    height = (zc - topo.z[nodes]) if cap_below else (topo.z[nodes] - zc)
+    nodes, height = nodes[height > 0], height[height > 0]
+    if not len(nodes):
+        return None
+    apex = sampler.node(int(nodes[np.argmax(height)]))
+    r = np.asarray(traced)
+    # the zipper takes the ring above a cap forward (below one, backward): the fan the other way
+    a, b = (np.roll(r, -1), r) if cap_below else (r, np.roll(r, -1))
+    fan = np.column_stack([np.full(len(r), apex), a, b])
+    p = pool.xyz[fan][..., :2]
+    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    area = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    if not ((area > 0).all() or (area < 0).all()):
+        return None
+    return traced, cap, [tuple(t) for t in fan.tolist()]
+
+
+def _signed_area(p: np.ndarray) -> float:
+    q = np.roll(p, -1, axis=0)
+    return 0.5 * float((p[:, 0] * q[:, 1] - q[:, 0] * p[:, 1]).sum())
+
+
+def _crosses_itself(p: np.ndarray) -> bool:
+    """Whether the closed polyline ``p`` (k, 2) has two non-adjacent segments that cross or touch
+    (every pair tested: for the few short rings of pinned caps)."""
+    k = len(p)
+    if k < 4:
+        return False
+    a, b = p, np.roll(p, -1, axis=0)
+    i, m = np.triu_indices(k, 2)
+    keep = ~((i == 0) & (m == k - 1))  # the closing segment meets the first
+    i, m = i[keep], m[keep]
+
+    def orient(p0, p1, q):
+        return np.sign(
+            (p1[:, 0] - p0[:, 0]) * (q[:, 1] - p0[:, 1]) - (p1[:, 1] - p0[:, 1]) * (q[:, 0] - p0[:, 0])
+        )
+
+    d1, d2 = orient(a[i], b[i], a[m]), orient(a[i], b[i], b[m])
+    d3, d4 = orient(a[m], b[m], a[i]), orient(a[m], b[m], b[i])
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    boxes = ((lo[i] <= hi[m]) & (lo[m] <= hi[i])).all(axis=1)  # (collinear ones must overlap)
+    return bool(((d1 * d2 <= 0) & (d3 * d4 <= 0) & boxes).any())
 
 
 def zipper(bottom: list[int], top: list[int], pool: VertexPool) -> np.ndarray:

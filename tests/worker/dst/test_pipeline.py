@@ -566,3 +566,18 @@ def test_a_face_parametrised_past_its_period_keeps_its_nodes_on_their_branch(mak
     z_top = mesh.z_offset + mesh.planes.section_z[top]
     ring = mesh.vertices[mesh.vertex_plane == top]
     assert np.abs(ring[:, 0]).max() == pytest.approx(math.sqrt(minor**2 - (z_top - major) ** 2), abs=1e-5)
+
+
+def test_a_folded_ring_is_told_from_a_simple_one():
+    """``tessellate._crosses_itself``, which picks the pinned caps to fan: a ring crossing itself, or
+    folded back over its own path, is; a simple one is not, even with non-adjacent segments on one
+    line (a U whose arms end level)."""
+    from worker.dst.tessellate import _crosses_itself
+
+    square = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], dtype=float)
+    assert not _crosses_itself(square)
+    assert _crosses_itself(square[[0, 2, 1, 3]])  # a bow tie
+    folded = np.array([[0, 0], [1, 0.1], [2, 0], [1.5, 0.05], [3, 0.5], [0, 0.5]])  # back over 1-2
+    assert _crosses_itself(folded)
+    u_shape = np.array([[0, 0], [3, 0], [3, 2], [2, 2], [2, 1], [1, 1], [1, 2], [0, 2]], dtype=float)
+    assert not _crosses_itself(u_shape)  # (segments 2-3 and 6-7 lie on y = 2, apart)

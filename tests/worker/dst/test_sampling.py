@@ -193,6 +193,23 @@ def test_a_trace_follows_the_section_curve_in_the_loops_direction(cone_sampler):
         angles(1.4, direction=tuple(-c for c in _tangent(1.4)))
 
 
+def test_a_trace_to_its_own_start_goes_once_round(cone_sampler):
+    """With ``min_length`` the start is not taken for the target at once (without, that hangs on the
+    rounding of the start's own distance): the trace goes once round the closed section (the circle
+    of radius 7.5) and stops within a step of where it began, as a pinned cap's ring is traced
+    (``RingSampler.traced_loop``)."""
+    sampler, cone, _ = cone_sampler
+    ev = sampler.mesh.faces[cone]
+    u, v = ev.uv_near(tuple(_on_circle(0.2)), (0.0, 0.0))
+    start = tuple(_on_circle(0.2)[:2])
+    pts = ev.trace_level(u, v, Z, start, _tangent(0.2), step=0.5, max_length=60.0, min_length=1e-9)
+    xy = np.array(pts)[:, :2]
+    assert np.hypot(xy[:, 0], xy[:, 1]) == pytest.approx(R_Z, abs=1e-9)
+    turn = np.unwrap(np.concatenate([[0.2], np.arctan2(xy[:, 1], xy[:, 0])]))
+    assert (np.diff(turn) > 0).all()
+    assert 2 * math.pi - 0.5 / R_Z - 1e-9 <= turn[-1] - 0.2 < 2 * math.pi
+
+
 @pytest.fixture(scope="module")
 def cube_side():
     """The side x = 5 of a 10 mm cube, where the section z = 2 is the line y = -5 .. 5: the face,
