@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from worker.dst.meshops import repeated_corner
 from worker.dst.sampling import RingSampler, VertexPool
@@ -138,13 +139,16 @@ def _signed_area(p: np.ndarray) -> float:
 
 def _crosses_itself(p: np.ndarray) -> bool:
     """Whether the closed polyline ``p`` (k, 2) has two non-adjacent segments that cross or touch
-    (every pair tested: for the few short rings of pinned caps)."""
+    (collinear ones overlapping). Two segments that meet have midpoints within the longest
+    segment's length: only those pairs are tested."""
     k = len(p)
     if k < 4:
         return False
     a, b = p, np.roll(p, -1, axis=0)
-    i, m = np.triu_indices(k, 2)
-    keep = ~((i == 0) & (m == k - 1))  # the closing segment meets the first
+    reach = float(np.linalg.norm(b - a, axis=1).max())
+    pairs = cKDTree(0.5 * (a + b)).query_pairs(reach * (1.0 + 1e-9) + 1e-12, output_type="ndarray")
+    i, m = pairs.min(axis=1), pairs.max(axis=1)
+    keep = (m - i > 1) & ~((i == 0) & (m == k - 1))  # not neighbours (the closing segment and the first)
     i, m = i[keep], m[keep]
 
     def orient(p0, p1, q):
