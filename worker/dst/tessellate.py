@@ -21,7 +21,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from worker.dst.meshops import repeated_corner
-from worker.dst.sampling import RingSampler, VertexPool
+from worker.dst.sampling import RingSampler, VertexPool, _distances_to_segments
 from worker.dst.sections import SectionTopology
 
 
@@ -117,7 +117,18 @@ def _fanned_cap(
     zc = float(topo.planes[j])
     height = (zc - topo.z[nodes]) if cap_below else (topo.z[nodes] - zc)
     nodes, height = nodes[height > 0], height[height > 0]
+    # the cap's nodes off the plane are exact surface points on its side of it: inside its loop, or
+    # (lying all but on it) within the budget of the ring (a trace that went round another loop of
+    # the face would not hold them)
     if not len(nodes):
+        return None
+    q, p = sampler.mesh.xyz[nodes, :2], pool.xyz[traced, :2]
+    out = ~_inside(q, p)
+    if (
+        out.any()
+        and _distances_to_segments(q[out], np.stack([p, np.roll(p, -1, axis=0)], axis=1)).max()
+        > sampler.chord
+    ):
         return None
     apex = sampler.node(int(nodes[np.argmax(height)]))
     r = np.asarray(traced)
@@ -130,6 +141,17 @@ def _fanned_cap(
     if not ((area > 0).all() or (area < 0).all()):
         return None
     return traced, cap, [tuple(t) for t in fan.tolist()]
+
+
+def _inside(q: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Whether each point of ``q`` (m, 2) lies inside the closed polyline ``p`` (k, 2) (even-odd
+    rule: crossings of a ray towards +x)."""
+    a, b = p[None, :, :], np.roll(p, -1, axis=0)[None, :, :]
+    x, y = q[:, None, 0], q[:, None, 1]
+    spans = (a[..., 1] > y) != (b[..., 1] > y)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        at = a[..., 0] + (y - a[..., 1]) * (b[..., 0] - a[..., 0]) / (b[..., 1] - a[..., 1])
+    return (spans & (x < at)).sum(axis=1) % 2 == 1
 
 
 def _signed_area(p: np.ndarray) -> float:

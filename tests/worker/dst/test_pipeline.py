@@ -581,3 +581,13 @@ def test_a_folded_ring_is_told_from_a_simple_one():
     assert _crosses_itself(folded)
     u_shape = np.array([[0, 0], [3, 0], [3, 2], [2, 2], [2, 1], [1, 1], [1, 2], [0, 2]], dtype=float)
     assert not _crosses_itself(u_shape)  # (segments 2-3 and 6-7 lie on y = 2, apart)
+
+
+def test_a_caps_nodes_are_told_inside_its_ring():
+    """``tessellate._inside`` (a fanned cap's nodes must lie inside its traced ring): even-odd, so
+    also for a ring that is not convex."""
+    from worker.dst.tessellate import _inside
+
+    u_shape = np.array([[0, 0], [3, 0], [3, 2], [2, 2], [2, 1], [1, 1], [1, 2], [0, 2]], dtype=float)
+    q = np.array([[0.5, 1.5], [2.5, 1.5], [1.5, 0.5], [1.5, 1.5], [4.0, 1.0], [-0.1, 0.5]])
+    assert _inside(q, u_shape).tolist() == [True, True, True, False, False, False]
