@@ -135,8 +135,8 @@ def _fanned_cap(
     # the zipper takes the ring above a cap forward (below one, backward): the fan the other way
     a, b = (np.roll(r, -1), r) if cap_below else (r, np.roll(r, -1))
     fan = np.column_stack([np.full(len(r), apex), a, b])
-    p = pool.xyz[fan][..., :2]
-    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    corners = pool.xyz[fan][..., :2]
+    e1, e2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
     area = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
     if not ((area > 0).all() or (area < 0).all()):
         return None
