@@ -25,7 +25,7 @@ _QUERY_CHUNK = 8192  # queries per nearest-segment search step
 _FIRST_RADIUS_MM = 0.5  # see SegmentSet._nearest
 CORNER_RAD = 1.0  # a reference polyline turning more than this (rad) at a vertex has a corner there
 _PLANE_SEPARATION_MM = 1e7  # farther than any two points of a part in one plane
-_PAIR_PIECES = 2.0  # see _segment_pairs_near
+_PAIR_PIECES = 2.0  # see segment_pairs_near
 
 
 @dataclass
@@ -180,7 +180,7 @@ def loop_self_crossings(
     points in order: its pockets from prefix sums along the loop (the shoelace terms and the
     segment lengths), at once for every crossing (a walk per crossing took minutes on a reference
     tangled into thousands of crossings at one plane). ``nearest``: a bounded pair search (see
-    ``_segment_pairs_near``)."""
+    ``segment_pairs_near``)."""
     cut = loops_cut(loops)
     i, k = _crossing_segments(cut, nearest)
     if not len(i):
@@ -238,25 +238,26 @@ def loop_self_crossings(
 
 def _crossing_segments(cut: MeshCut, nearest: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Pairs (i, k) of segments of one plane of ``cut`` with no end in common that cross (``nearest``:
-    see ``_segment_pairs_near``)."""
+    see ``segment_pairs_near``)."""
     a, b = cut.seg[:, 0], cut.seg[:, 1]
     if len(a) < 4:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    i, k = _segment_pairs_near(a, b, cut.seg_plane, nearest)
+    i, k = segment_pairs_near(a, b, cut.seg_plane, nearest)
     node = cut.seg_node
     apart = ~(node[i][:, :, None] == node[k][:, None, :]).any(axis=(1, 2))  # no end in common
     i, k = i[apart], k[apart]
-
-    def side(p: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
-        return np.sign((q[:, 0] - p[:, 0]) * (r[:, 1] - p[:, 1]) - (q[:, 1] - p[:, 1]) * (r[:, 0] - p[:, 0]))
-
     cross = (side(a[i], b[i], a[k]) * side(a[i], b[i], b[k]) < 0) & (
         side(a[k], b[k], a[i]) * side(a[k], b[k], b[i]) < 0
     )
     return i[cross], k[cross]
 
 
-def _segment_pairs_near(
+def side(p: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Per row, the side of line p -> q that point r lies on: +1 left, -1 right, 0 on it."""
+    return np.sign((q[:, 0] - p[:, 0]) * (r[:, 1] - p[:, 1]) - (q[:, 1] - p[:, 1]) * (r[:, 0] - p[:, 0]))
+
+
+def segment_pairs_near(
     a: np.ndarray, b: np.ndarray, plane: np.ndarray, nearest: int | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Pairs (i, k), i < k, of segments a-b of one plane that may cross: each segment split into pieces

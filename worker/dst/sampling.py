@@ -201,6 +201,7 @@ class RingSampler:
         self.mesh, self.topo, self.pool = mesh, topo, pool
         self.seg_len = segment_length
         self.chord = chord_error
+        self.trace_reach = max(EXCURSION_MAX_TRACE_MM, 100.0 * segment_length)  # a trace's longest
         # a pinned loop's crossings are kept (the kept triangles use them): False where only the
         # loops are wanted (the deviation report's reference), so that a stretch of them in the
         # wrong order can be traced again
@@ -787,7 +788,7 @@ class RingSampler:
                 (float(xyz[b, 0]), float(xyz[b, 1])),
                 b_direction,
                 step=self.seg_len,
-                max_length=max(EXCURSION_MAX_TRACE_MM, 100.0 * self.seg_len),
+                max_length=self.trace_reach,
             )
         except ExactFailure:
             self.stats.excursion_failures += 1
@@ -1003,7 +1004,7 @@ class RingSampler:
                 (float(xyz[a, 0]), float(xyz[a, 1])),
                 direction,
                 step=self.seg_len,
-                max_length=max(EXCURSION_MAX_TRACE_MM, 100.0 * self.seg_len),
+                max_length=self.trace_reach,
                 min_length=1e-9,  # leaves its start behind at once: arrives there once round
             )
         except ExactFailure:

@@ -18,8 +18,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.spatial import cKDTree
 
+from worker.dst.deviation import segment_pairs_near, side
 from worker.dst.meshops import repeated_corner
 from worker.dst.sampling import RingSampler, VertexPool, _distances_to_segments
 from worker.dst.sections import SectionTopology
@@ -161,25 +161,17 @@ def _signed_area(p: np.ndarray) -> float:
 
 def _crosses_itself(p: np.ndarray) -> bool:
     """Whether the closed polyline ``p`` (k, 2) has two non-adjacent segments that cross or touch
-    (collinear ones overlapping). Two segments that meet have midpoints within the longest
-    segment's length: only those pairs are tested."""
+    (collinear ones overlapping): of the pairs ``deviation.segment_pairs_near`` finds (every pair
+    that meets is among them), unlike ``deviation.self_crossings`` touching ones too."""
     k = len(p)
     if k < 4:
         return False
     a, b = p, np.roll(p, -1, axis=0)
-    reach = float(np.linalg.norm(b - a, axis=1).max())
-    pairs = cKDTree(0.5 * (a + b)).query_pairs(reach * (1.0 + 1e-9) + 1e-12, output_type="ndarray")
-    i, m = pairs.min(axis=1), pairs.max(axis=1)
+    i, m = segment_pairs_near(a, b, np.zeros(k, dtype=np.int64))
     keep = (m - i > 1) & ~((i == 0) & (m == k - 1))  # not neighbours (the closing segment and the first)
     i, m = i[keep], m[keep]
-
-    def orient(p0, p1, q):
-        return np.sign(
-            (p1[:, 0] - p0[:, 0]) * (q[:, 1] - p0[:, 1]) - (p1[:, 1] - p0[:, 1]) * (q[:, 0] - p0[:, 0])
-        )
-
-    d1, d2 = orient(a[i], b[i], a[m]), orient(a[i], b[i], b[m])
-    d3, d4 = orient(a[m], b[m], a[i]), orient(a[m], b[m], b[i])
+    d1, d2 = side(a[i], b[i], a[m]), side(a[i], b[i], b[m])
+    d3, d4 = side(a[m], b[m], a[i]), side(a[m], b[m], b[i])
     lo, hi = np.minimum(a, b), np.maximum(a, b)
     boxes = ((lo[i] <= hi[m]) & (lo[m] <= hi[i])).all(axis=1)  # (collinear ones must overlap)
     return bool(((d1 * d2 <= 0) & (d3 * d4 <= 0) & boxes).any())
