@@ -278,7 +278,7 @@ class RingSampler:
         ub, vb = mesh.tri_uv[t, row.index(b)]
         face = int(mesh.tri_face[t])
         try:
-            x, y, _, ur, vr = mesh.faces[face].root_on_uv_segment(ua, va, ub, vb, zc)
+            x, y, _, ur, vr = self._root_on_face(face, a, b, (ua, va), (ub, vb), zc)
             # Between nodes on the face's boundary, the root can lie beyond the trim, where the
             # face is narrower than its topology triangle (a sliver's tip): not on the B-rep.
             if (self._on_brep_edge[a] or self._on_brep_edge[b]) and not mesh.faces[face].contains(
@@ -324,6 +324,26 @@ class RingSampler:
                 ) from None
             x, y, _ = p
         return x, y, zc
+
+    def _root_on_face(self, face: int, a: int, b: int, uva, uvb, zc: float) -> tuple[float, ...]:
+        """``FaceEval.root_on_uv_segment`` of face ``face`` between nodes ``a`` and ``b`` at (u, v)
+        ``uva`` and ``uvb``, or where those do not bracket the plane, between the (u, v) of the
+        nodes' own positions: a node on a B-rep edge has the (u, v) of the edge's curve on the face,
+        which can lie farther from the node (the edge's 3D curve) than the file's tolerance admits
+        (``trj3_s1-al-214`` turned (78.4, 32.6, -18.9): 0.37 mm at an edge of tolerance 0.003 mm,
+        the node 0.17 mm above the plane and the surface at its (u, v) 0.16 mm below it).
+        Raises ExactFailure if neither brackets it."""
+        fe = self.mesh.faces[face]
+        try:
+            return fe.root_on_uv_segment(*uva, *uvb, zc)
+        except ExactFailure:
+            if not (self._on_brep_edge[a] or self._on_brep_edge[b]):
+                raise
+        own = [
+            fe.uv_near(tuple(self.mesh.xyz[n]), tuple(uv)) if self._on_brep_edge[n] else tuple(uv)
+            for n, uv in ((a, uva), (b, uvb))
+        ]
+        return fe.root_on_uv_segment(*own[0], *own[1], zc)
 
     def _newton_from_crossing(self, t: int, a: int, b: int, uva, uvb, zc: float) -> np.ndarray | None:
         """Newton (the smallest 3D move onto ``z = zc``) from where edge a-b of triangle ``t``

@@ -152,6 +152,47 @@ def test_a_crossing_whose_root_lies_beyond_its_face_is_dropped_from_the_ring(tmp
     assert mesh.stats["off_trim_crossings"] >= 2  # dropped, and counted
 
 
+def test_a_crossing_whose_nodes_stored_uv_is_off_the_node_is_solved_from_the_nodes_own(tmp_path):
+    """A node on a B-rep edge carries the (u, v) of the edge's curve on the face, which a sloppy
+    file can put farther from the node than its tolerance says (``trj3_s1-al-214`` turned (78.4,
+    32.6, -18.9): 0.37 mm, the surface there on the other side of the plane from the node, and the
+    job failed with "no exact point of face 6"). Here a cone's seam node gets a stored (u, v) whose
+    surface point lies as far below the plane as the node lies above it: the crossing is still the
+    exact point between the two nodes' own (u, v), on the circle and on the topology edge's span."""
+    from tests.conftest import build_part, write_step
+
+    path = write_step(build_part("cone", radius=RADIUS, height=HEIGHT), tmp_path / "cone.step", nurbs=False)
+    mesh = _topomesh_of(path)
+    topo = cut_topology(mesh, np.array([Z]), on_plane_tol=C.ON_PLANE_TOL_MM, noise_tol=np.zeros(1))
+    sampler = RingSampler(mesh, topo, VertexPool(), segment_length=1.0, chord_error=0.01)
+    on_edge = sampler._on_brep_edge
+    # a crossing on a topology edge (not itself a B-rep edge) from a seam node above the plane
+    c = next(
+        c
+        for c in range(len(topo.cross_edge))
+        if topo.cross_node[c] < 0
+        and (a_b := tuple(int(x) for x in topo.edges[topo.cross_edge[c]])) not in mesh.edge_of
+        and any(on_edge[n] and mesh.xyz[n, 2] > Z for n in a_b)
+    )
+    a, b = (int(x) for x in topo.edges[topo.cross_edge[c]])
+    node = a if on_edge[a] and mesh.xyz[a, 2] > Z else b
+    t = int(topo.edge_tris[topo.cross_edge[c], 0])
+    corner = mesh.tris[t].tolist().index(node)
+    face = mesh.faces[int(mesh.tri_face[t])]
+    u, v = mesh.tri_uv[t, corner]
+    # the (u, v) along the cone's generatrix at the node's height mirrored in the plane
+    grad = np.subtract(face.point(u, v + 1e-3), face.point(u, v))[2] / 1e-3
+    mesh.tri_uv[t, corner, 1] = v - 2.0 * (mesh.xyz[node, 2] - Z) / grad
+    assert face.point(*mesh.tri_uv[t, corner])[2] < Z  # the stored ends no longer bracket the plane
+
+    vid = sampler.crossing(c)
+    p = sampler.pool.xyz[vid]
+    assert abs(math.hypot(p[0], p[1]) - R_Z) < 1e-9 and p[2] == Z
+    lo, hi = np.minimum(mesh.xyz[a, :2], mesh.xyz[b, :2]), np.maximum(mesh.xyz[a, :2], mesh.xyz[b, :2])
+    assert np.all(p[:2] > lo - 1e-6) and np.all(p[:2] < hi + 1e-6), (p, mesh.xyz[a], mesh.xyz[b])
+    assert sampler.stats.fallbacks == 0  # found by its bracket, not Newton from a seed
+
+
 def _tangent(angle: float) -> tuple[float, float]:
     return (-math.sin(angle), math.cos(angle))  # counter-clockwise: the cone's material on the left
 
