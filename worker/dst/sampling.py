@@ -518,7 +518,7 @@ class RingSampler:
                 for v in (ring[k % n] for k in range(i + 1, j))
                 if v not in kept and (face := face_of.get(v)) is not None and self._in_trim(face, v)
             ]
-            if dropped and _distances_to_segments(self.pool.xyz[dropped, :2], seg).max() > self.chord:
+            if dropped and distances_to_segments(self.pool.xyz[dropped, :2], seg).max() > self.chord:
                 lost.append(piece)
         return lost
 
@@ -830,7 +830,7 @@ class RingSampler:
             if s[-1] >= 0.5 * rest:
                 look |= (s[1:-1] > 0.25 * s[-1]) & (s[1:-1] < 0.75 * s[-1])
             away = tr[look, :2]
-            if len(away) and _distances_to_segments(away, elsewhere).min() <= CHORD_FILL * self.chord:
+            if len(away) and distances_to_segments(away, elsewhere).min() <= CHORD_FILL * self.chord:
                 self.stats.excursion_failures += 1
                 return None
         on_plane = np.column_stack([tr[:, :2], np.full(len(tr), xyz[a, 2])])
@@ -853,7 +853,7 @@ class RingSampler:
                 if len(away) and (
                     elsewhere is None
                     or not len(elsewhere)
-                    or _distances_to_segments(away, elsewhere).max() > self.chord
+                    or distances_to_segments(away, elsewhere).max() > self.chord
                 ):
                     self.stats.excursion_failures += 1
                     return None
@@ -1669,7 +1669,7 @@ def _segments_beside(p: np.ndarray, i: int, j: int) -> np.ndarray:
     return np.stack([p[k], p[(k + 1) % n]], axis=1) if len(k) else np.zeros((0, 2, 2))
 
 
-def _distances_to_segments(q: np.ndarray, seg: np.ndarray, chunk: int = 256) -> np.ndarray:
+def distances_to_segments(q: np.ndarray, seg: np.ndarray, chunk: int = 256) -> np.ndarray:
     """Distance (mm) from each of the points ``q`` (k, 2) to the nearest of the segments ``seg``
     (m, 2, 2): (k,)."""
     a, ab = seg[:, 0], seg[:, 1] - seg[:, 0]

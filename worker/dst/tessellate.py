@@ -21,7 +21,7 @@ import numpy as np
 
 from worker.dst.deviation import segment_pairs_near, side
 from worker.dst.meshops import repeated_corner
-from worker.dst.sampling import RingSampler, VertexPool, _distances_to_segments
+from worker.dst.sampling import RingSampler, VertexPool, distances_to_segments
 from worker.dst.sections import SectionTopology
 
 
@@ -126,8 +126,7 @@ def _fanned_cap(
     out = ~_inside(q, p)
     if (
         out.any()
-        and _distances_to_segments(q[out], np.stack([p, np.roll(p, -1, axis=0)], axis=1)).max()
-        > sampler.chord
+        and distances_to_segments(q[out], np.stack([p, np.roll(p, -1, axis=0)], axis=1)).max() > sampler.chord
     ):
         return None
     apex = sampler.node(int(nodes[np.argmax(height)]))
