@@ -25,6 +25,7 @@ from OCP.ShapeAnalysis import ShapeAnalysis_Surface
 from OCP.TopAbs import TopAbs_IN, TopAbs_ON, TopAbs_REVERSED
 from scipy.optimize import brentq, minimize_scalar
 
+from worker.dst.analytic import Evaluator, evaluator
 from worker.dst.constants import ROOT_XTOL
 
 # a walk along a section curve stops this close (mm, along the curve) to the point nearest its target
@@ -71,6 +72,7 @@ class FaceEval:
         "_dv",
         "_sas",
         "_fclass",
+        "_batch",
     )
 
     def __init__(self, adaptor: BRepAdaptor_Surface):
@@ -91,6 +93,15 @@ class FaceEval:
         self._p, self._du, self._dv = gp_Pnt(), gp_Vec(), gp_Vec()
         self._sas = None
         self._fclass: dict[float, IntTools_FClass2d] = {}
+        self._batch: Evaluator | None | bool = False  # not built yet
+
+    @property
+    def batch(self) -> Evaluator | None:
+        """The surface's vectorised evaluator (``analytic.evaluator``: None for a kind it does not
+        cover), built on first use and kept."""
+        if self._batch is False:
+            self._batch = evaluator(self.ad)
+        return self._batch
 
     def uv_near(self, xyz: tuple[float, float, float], seed: tuple[float, float]) -> tuple[float, float]:
         """(u, v) of a point on the surface, on the parameter branch nearest ``seed`` (periodic surfaces).

@@ -145,13 +145,14 @@ def slice_part(
     height = zmax - zmin
     planes = plan_planes(height=height, params=params)
     world = zmin + planes.section_z
-    prepared = [prepare_extremes(mesh, world) for mesh in meshes]
-    local_extremes = sum(snapped for snapped, _ in prepared)
-    ridge_nodes = sum(added for _, added in prepared)
-    timings["extremes"] = time.perf_counter() - t
-
     # half the float32 spacing at each plane: a node closer than that is written onto the plane
     float32_resolution = 0.5 * np.spacing(np.abs(planes.z32)).astype(np.float64)
+    prepared = [prepare_extremes(mesh, world, float32_resolution) for mesh in meshes]
+    local_extremes = sum(snapped for snapped, _, _ in prepared)
+    ridge_nodes = sum(added for _, added, _ in prepared)
+    grazed_nodes = sum(added for _, _, added in prepared)
+    timings["extremes"] = time.perf_counter() - t
+
     topos = []
     estimate = 0.0
     for mesh in meshes:
@@ -176,6 +177,7 @@ def slice_part(
         "height_mm": height,
         "local_extremes_snapped": local_extremes,
         "ridge_nodes": ridge_nodes,
+        "grazed_nodes": grazed_nodes,
     }
     sampling_totals = SamplingStats()
     for si, (mesh, topo) in enumerate(zip(meshes, topos, strict=True)):

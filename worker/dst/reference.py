@@ -108,11 +108,11 @@ def exact_sections(
     if callable(heights):
         heights = heights(zmax - zmin)
     world = zmin + np.asarray(heights, dtype=np.float64)
-    for mesh in meshes:
-        prepare_extremes(mesh, world)
     n_planes = len(world)
     # as in the DST build: a node within half a float32 step of a plane is on it (what a slicer sees)
     noise = 0.5 * np.spacing(np.abs(np.asarray(heights, dtype=np.float32))).astype(np.float64)
+    for mesh in meshes:
+        prepare_extremes(mesh, world, noise)
     # per solid: (loop, corner mask) pairs at each plane, and just below its flat faces
     per_solid = [_solid_sections(mesh, world, noise, chord, segment_length, helper) for mesh in meshes]
     flat = sorted({j for _, below, _ in per_solid for j in below})

@@ -24,7 +24,8 @@ Not handled: a ridge that is not its face's extreme, or not an iso-parameter lin
 from __future__ import annotations
 
 import numpy as np
-from OCP.GeomAbs import GeomAbs_Plane
+from OCP.GeomAbs import GeomAbs_Line, GeomAbs_Plane
+from scipy.optimize import minimize_scalar
 
 from worker.dst.lowest import face_optimum_from_nodes, snap_local_extremes
 from worker.dst.topomesh import TopoMesh
@@ -35,13 +36,24 @@ _LINE_SAMPLES = 9  # points along a candidate line checked for constant height
 _LINE_TOL_MM = 1e-9  # ... within this of the extreme's height: a horizontal line
 # a node this close to the line, relative to its edge's extent in the line's parameter, is on it
 _ON_LINE_REL = 1e-6
+_GRAZE_ROUNDS = 3  # edges made by grazed splits checked again, at most this many times
+_NOISE_MM = 1e-9  # a grazed edge's extreme must pass its plane by more than this (evaluator noise)
+_UV_GAP_MM = 1e-6  # a corner whose (u, v) gives a point farther than this from its node is projected
 
 
-def prepare_extremes(mesh: TopoMesh, planes: np.ndarray) -> tuple[int, int]:
+def prepare_extremes(
+    mesh: TopoMesh, planes: np.ndarray, depth: np.ndarray | None = None
+) -> tuple[int, int, int]:
     """What the planes need of a topology mesh's local extremes, in place, in order: apexes and
-    dimples near a plane snapped onto their exact point (``lowest.snap_local_extremes``), then node
-    rows along ridges and valleys near a plane (``add_ridge_rows``). Returns (snapped, added) nodes."""
-    return snap_local_extremes(mesh, planes), add_ridge_rows(mesh, planes)
+    dimples near a plane snapped onto their exact point (``lowest.snap_local_extremes``), node rows
+    along ridges and valleys near a plane (``add_ridge_rows``), then edges split where the B-rep
+    between their ends passes a plane they do not cross (``split_grazed_edges``, with ``depth``).
+    Returns (snapped, ridge, grazed) nodes."""
+    return (
+        snap_local_extremes(mesh, planes),
+        add_ridge_rows(mesh, planes),
+        split_grazed_edges(mesh, planes, depth),
+    )
 
 
 def add_ridge_rows(mesh: TopoMesh, planes: np.ndarray) -> int:
@@ -75,6 +87,164 @@ def add_ridge_rows(mesh: TopoMesh, planes: np.ndarray) -> int:
             if j < len(planes) and planes[j] <= hi and planes[j] != height:
                 added += _split_along(mesh, f, axis, value, sign)
     return added
+
+
+def split_grazed_edges(mesh: TopoMesh, planes: np.ndarray, depth: np.ndarray | None = None) -> int:
+    """Split (in place) every mesh edge whose two ends lie on one side of a plane while the exact
+    B-rep between them crosses it, at the exact point farthest beyond. Returns the nodes added.
+
+    A plane grazing a face a little off a critical point of its height (a tilted crest, a saddle)
+    cuts the surface into pieces the topology mesh's chords need not show: the ends of an edge lie
+    up to a deflection below a crest that rises above the plane between them. The mesh's section
+    then joins what the exact section keeps apart, or parts what it joins (a crest's tongue cut off
+    from its tip; two loops touching at a saddle made one). Each edge with both ends within the band
+    of the nearest plane beyond them is checked at its middle (the surface along the edge's (u, v)
+    segment, or the B-rep edge's own curve); where the parabola through its ends and middle comes
+    near the plane, the exact extreme along the edge is found (bounded Brent), and if it lies beyond
+    the plane by more than ``depth`` (per plane, mm: what a float32 slicer cannot tell from the plane;
+    default ``NOISE_MM``) the edge is split there. Edges made by the splits are checked again (at most
+    ``_GRAZE_ROUNDS`` times).
+
+    Edges inside a flat face are straight (never checked); an edge crossing a plane is the cut's
+    business, even where the surface crosses it three times.
+    """
+    planes = np.asarray(planes, dtype=np.float64)
+    order = np.argsort(planes)
+    planes = planes[order]
+    depth = np.full(len(planes), _NOISE_MM) if depth is None else np.asarray(depth, dtype=np.float64)[order]
+    if not len(planes) or not len(mesh.tris):
+        return 0
+    depth = np.maximum(depth, _NOISE_MM)
+    added, since = 0, 0
+    for _ in range(_GRAZE_ROUNDS):
+        n0 = mesh.n_nodes
+        points = _grazed_edges(mesh, planes, depth, since)
+        if not points:
+            break
+        added += split_edges(mesh, points)
+        since = n0  # the next round: only the edges of the new nodes
+    return added
+
+
+def _grazed_edges(
+    mesh: TopoMesh, planes: np.ndarray, depth: np.ndarray, since: int
+) -> dict[tuple[int, int], np.ndarray]:
+    """{(a, b): exact point} of the edges ``split_grazed_edges`` splits (planes sorted), of those with
+    a node numbered ``since`` or above."""
+    n = mesh.n_nodes
+    a_all = mesh.tris.ravel()
+    b_all = np.roll(mesh.tris, -1, axis=1).ravel()
+    keys, first = np.unique(np.minimum(a_all, b_all) * n + np.maximum(a_all, b_all), return_index=True)
+    if since:
+        new = (a_all[first] >= since) | (b_all[first] >= since)
+        keys, first = keys[new], first[new]
+    a, b = a_all[first], b_all[first]
+    z = mesh.xyz[:, 2]
+    za, zb = z[a], z[b]
+    lo, hi = np.minimum(za, zb), np.maximum(za, zb)
+    k = np.searchsorted(planes, lo, side="left")  # the first plane at or above the lower end
+    last = len(planes) - 1
+    up = np.where(k <= last, planes[np.minimum(k, last)], np.inf)
+    down = np.where(k > 0, planes[np.maximum(k - 1, 0)], -np.inf)
+    band = BAND_DEFLECTIONS * mesh.deflection
+    # not crossed (no plane between the ends, nor through one), a plane beyond within the band
+    cand = np.flatnonzero((up > hi) & ((up - hi <= band) | (lo - down <= band)))
+    if not len(cand):
+        return {}
+    t, i = np.divmod(first[cand], 3)
+    face = mesh.tri_face[t]
+    brep_keys = np.fromiter((ka * n + kb for ka, kb in mesh.edge_of), dtype=np.int64, count=len(mesh.edge_of))
+    on_brep = np.isin(keys[cand], brep_keys)
+    flat = np.array([fe.ad.GetType() == GeomAbs_Plane for fe in mesh.faces], dtype=bool)
+    inner = ~on_brep & ~flat[face]  # edges inside a flat face are straight
+    uva, uvb = mesh.tri_uv[t, i].copy(), mesh.tri_uv[t, (i + 1) % 3].copy()
+    za, zb = za[cand], zb[cand]  # the profile's ends: the nodes' heights (inner edges: the surface's, below)
+    zm = np.full(len(cand), np.nan)
+    # the surface at each inner edge's ends and middle (u, v), a batch per face. A node on a B-rep
+    # edge carries the (u, v) of the edge's curve on the face, which a sloppy file puts off the node
+    # (boxed_sphere: up to 0.06 mm): the profile is then taken from the node's own (u, v), projected.
+    sel = np.flatnonzero(inner)
+    sel = sel[np.argsort(face[sel], kind="stable")]
+    groups = np.split(sel, np.flatnonzero(np.diff(face[sel])) + 1) if len(sel) else []
+    ends = (a[cand], b[cand])
+    for g in groups:
+        fe = mesh.faces[int(face[g[0]])]
+        for uv, node in ((uva, ends[0]), (uvb, ends[1])):
+            gap = np.linalg.norm(_surface(fe, uv[g]) - mesh.xyz[node[g]], axis=1)
+            for c in g[gap > _UV_GAP_MM].tolist():
+                uv[c] = fe.uv_near(tuple(mesh.xyz[node[c]]), tuple(uv[c]))
+        pts = _surface(fe, np.concatenate([uva[g], uvb[g], 0.5 * (uva[g] + uvb[g])]))[:, 2]
+        za[g], zb[g], zm[g] = np.split(pts, 3)
+    # a B-rep edge's own curve at the middle parameter between its nodes
+    param: dict[tuple[int, int], float] = {}  # (B-rep edge, node) -> curve parameter
+
+    def s_of(ei: int, node: int) -> float:
+        s = param.get((ei, node))
+        if s is None:
+            s = param[(ei, node)] = mesh.edges[ei].parameter_of(tuple(mesh.xyz[node]))
+        return s
+
+    span: dict[int, tuple[int, float, float]] = {}  # candidate -> (B-rep edge, parameters of a, b)
+    for c in np.flatnonzero(on_brep).tolist():
+        na, nb = int(a[cand[c]]), int(b[cand[c]])
+        ei = mesh.edge_of[(min(na, nb), max(na, nb))]
+        ev = mesh.edges[ei]
+        if ev.ad.GetType() == GeomAbs_Line:
+            continue  # straight
+        sa, sb = s_of(ei, na), s_of(ei, nb)
+        if ev.closed and abs(sb - sa) > 0.5 * (ev.s1 - ev.s0):
+            continue  # the two nodes straddle a closed edge's seam
+        span[c] = (ei, sa, sb)
+        zm[c] = ev.point(0.5 * (sa + sb))[2]
+    kc = k[cand]
+    sag = zm - 0.5 * (za + zb)  # NaN: not checked
+    sign = np.where(sag > 0.0, -1.0, 1.0)  # -1: the edge bulges up, towards the plane above
+    plane_j = np.where(sag > 0.0, kc, kc - 1)
+    ok = np.isfinite(sag) & (sag != 0.0) & (plane_j >= 0) & (plane_j <= last)
+    plane = planes[np.clip(plane_j, 0, last)]
+    # the extreme of the parabola through the ends and the middle, beyond the plane or short of it
+    # by less than a quarter of the sag (a profile not quite a parabola: an edge turns ~20 deg at most)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tp = np.clip(0.5 + (zb - za) / (8.0 * sag), 0.0, 1.0)
+    peak = za + (zb - za) * tp + 4.0 * sag * tp * (1.0 - tp)
+    near = np.flatnonzero(ok & (-sign * (peak - plane) >= -0.25 * np.abs(sag)))
+    out: dict[tuple[int, int], np.ndarray] = {}
+    for c in near.tolist():
+        sg = float(sign[c])
+        if on_brep[c]:
+            ei, sa, sb = span[c]
+            ev = mesh.edges[ei]
+            p = np.array(ev.point(ev.height_extreme(min(sa, sb), max(sa, sb), sg)))
+        else:
+            fe = mesh.faces[int(face[c])]
+            ad = fe.ad
+            (ua, va), (du, dv) = uva[c].tolist(), (uvb[c] - uva[c]).tolist()
+            res = minimize_scalar(
+                lambda x, ad=ad, ua=ua, va=va, du=du, dv=dv, sg=sg: sg * ad.Value(ua + x * du, va + x * dv).Z(),
+                bounds=(0.0, 1.0),
+                method="bounded",
+                options={"xatol": 1e-7},  # the height there within ~1e-14 of the sag: any point will do
+            )
+            x = float(res.x)
+            p = np.array(fe.point(ua + x * du, va + x * dv))
+        # beyond the plane, and near the edge (a point elsewhere: a profile not along the edge)
+        if -sg * (p[2] - plane[c]) > depth[plane_j[c]] and _to_segment(p, mesh.xyz[a[cand[c]]], mesh.xyz[b[cand[c]]]) <= band:
+            na, nb = int(a[cand[c]]), int(b[cand[c]])
+            out[(min(na, nb), max(na, nb))] = p
+    return out
+
+
+def _surface(fe, uv: np.ndarray) -> np.ndarray:
+    """The face's surface at (k, 2) parameters: (k, 3)."""
+    if fe.batch is not None:
+        return fe.batch(uv[:, 0], uv[:, 1], False)[0]
+    return np.array([fe.point(float(u), float(v)) for u, v in uv]).reshape(-1, 3)
+
+
+def _to_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    ab = b - a
+    t = float(np.clip(np.dot(p - a, ab) / max(float(np.dot(ab, ab)), 1e-300), 0.0, 1.0))
+    return float(np.linalg.norm(a + t * ab - p))
 
 
 def _extreme_line(mesh: TopoMesh, f: int, sign: float) -> tuple[int, float, float] | None:
@@ -126,20 +296,15 @@ def _split_along(mesh: TopoMesh, f: int, axis: int, value: float, sign: float) -
     if not len(rows):
         return 0
     # one new node per crossed edge, keyed by its global nodes
-    new_of: dict[tuple[int, int], int] = {}
-    points: list[np.ndarray] = []
-    brep_split: dict[tuple[int, int], int] = {}
+    points: dict[tuple[int, int], np.ndarray] = {}
     for r, i in zip(rows.tolist(), cols.tolist(), strict=True):
         t = int(sel[r])
         a, b = int(mesh.tris[t, i]), int(mesh.tris[t, (i + 1) % 3])
         key = (min(a, b), max(a, b))
-        if key in new_of:
+        if key in points:
             continue
         ei = mesh.edge_of.get(key)
-        p = None
-        if ei is not None:
-            brep_split[key] = ei
-            p = _edge_extreme_between(mesh, ei, a, b, sign)
+        p = None if ei is None else _edge_extreme_between(mesh, ei, a, b, sign)
         if p is None:
             # inside the face; or on a boundary edge whose extreme is not between the two nodes
             # (a closed edge's seam between them): the surface on the line, on the edge's pcurve
@@ -147,9 +312,20 @@ def _split_along(mesh: TopoMesh, f: int, axis: int, value: float, sign: float) -
             s = d[r, i] / (d[r, i] - d_next[r, i])
             uv = mesh.tri_uv[t, i] + s * (mesh.tri_uv[t, (i + 1) % 3] - mesh.tri_uv[t, i])
             p = np.array(fe.point(float(uv[0]), float(uv[1])))
-        new_of[key] = mesh.n_nodes + len(points)
-        points.append(p)
-    xyz = np.vstack([mesh.xyz, np.asarray(points)])
+        points[key] = p
+    return split_edges(mesh, points)
+
+
+def split_edges(mesh: TopoMesh, points: dict[tuple[int, int], np.ndarray]) -> int:
+    """Split each mesh edge ``(a, b)`` (a < b) of ``points`` at its exact B-rep point, in place:
+    a new node there, each triangle using a split edge cut into triangles (corner order kept, so the
+    mesh stays closed and consistently oriented), each new node's (u, v) in every face around it
+    projected from the point, and a split edge lying on a B-rep edge replaced by its two pieces in
+    ``edge_of``. Returns the nodes added."""
+    if not points:
+        return 0
+    new_of = {key: mesh.n_nodes + k for k, key in enumerate(points)}
+    xyz = np.vstack([mesh.xyz, np.asarray(list(points.values()))])
     # every triangle (any face) with a split edge
     e = np.stack([mesh.tris, np.roll(mesh.tris, -1, axis=1)], axis=2)  # (m, 3, 2)
     lo_hi = np.sort(e, axis=2)
@@ -184,11 +360,11 @@ def _split_along(mesh: TopoMesh, f: int, axis: int, value: float, sign: float) -
     mesh.tris = np.concatenate([mesh.tris[keep], np.asarray(new_tris, dtype=np.int64)])
     mesh.tri_uv = np.concatenate([mesh.tri_uv[keep], np.asarray(new_uv, dtype=np.float64)])
     mesh.tri_face = np.concatenate([mesh.tri_face[keep], np.asarray(new_face, dtype=mesh.tri_face.dtype)])
-    for (a, b), ei in brep_split.items():
-        m = new_of[(a, b)]
-        del mesh.edge_of[(a, b)]
-        mesh.edge_of[(min(a, m), max(a, m))] = ei
-        mesh.edge_of[(min(m, b), max(m, b))] = ei
+    for (a, b), m in new_of.items():
+        ei = mesh.edge_of.pop((a, b), None)
+        if ei is not None:
+            mesh.edge_of[(min(a, m), max(a, m))] = ei
+            mesh.edge_of[(min(m, b), max(m, b))] = ei
     return len(points)
 
 

@@ -39,7 +39,6 @@ from OCP.collections import Array1_double
 from OCP.GeomAbs import GeomAbs_C1
 from OCP.gp import gp_Pnt, gp_Vec
 
-from worker.dst.analytic import evaluator
 from worker.dst.constants import (
     LEVEL_TOL_MM,
     MAX_SUBDIVISION,
@@ -224,7 +223,7 @@ class RingSampler:
         self.corner_vids: set[int] = set()
         self._kinks: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # face -> interior C0 u and v lines
         self._ads = [f.ad for f in mesh.faces]
-        self._evals = [evaluator(ad) for ad in self._ads]
+        self._evals = [f.batch for f in mesh.faces]
         self._analytic = np.array([e is not None for e in self._evals], dtype=bool)
         # each face's (u, v) box, and whether a point beyond it in u or v is certainly off the face
         # (``FaceEval.bounded``)

@@ -518,6 +518,42 @@ def test_a_plane_just_below_a_torus_top_circle_cuts_both_of_its_circles(make_ste
     assert mesh.stats["ridge_nodes"] > 0
 
 
+@pytest.mark.parametrize("tilt", [10.0, 23.0])
+@pytest.mark.parametrize("side", [-1.0, 1.0])
+def test_a_plane_beside_a_saddle_cuts_the_exact_number_of_loops(make_step, tilt, side):
+    """A torus (R 15) turned about x has two saddles of its height; one lies 2r above its lowest
+    point. With r chosen so that the plane at 10.1 mm is 0.2 um below (side -1) or above (+1) that
+    saddle, the coarse topology mesh's section joined the two loops on either side of the saddle, or
+    parted the one (two of these four cases; a random turn of r103ec.stp was off by 0.76 mm this way).
+    The DST ring now has the exact number of loops there (Morse theory: between the saddles two, else
+    one), every ring vertex on the torus (closed form), and the report measures the plane within the
+    budget, its reference agreeing on the loops."""
+    from worker.dst.deviation import cut_mesh
+    from worker.dst.report import build_report
+
+    big, z = 15.0, 10.1
+    r = 0.5 * (z - side * 2e-4)  # the saddle at 2r, side * 0.2 um from the plane
+    mesh = slice_step(make_step("torus", major=big, minor=r), SliceParams(rotate_x=tilt))
+    assert_watertight(mesh)
+    assert_slab_property(mesh)
+    (j,) = np.flatnonzero(np.abs(mesh.planes.section_z - z) < 1e-6)
+    upper = r > big * math.sin(math.radians(tilt))  # 2r is the upper saddle (else the lower one)
+    loops = 2 if (side < 0) == upper else 1  # below the upper saddle, or above the lower one: two
+    cut = cut_mesh(mesh.vertices32.astype(np.float64), mesh.triangles, mesh.planes.section_z[j : j + 1])
+    assert cut.loops[0] == loops
+    ring = mesh.vertices[mesh.vertex_plane == j] + np.array([0.0, 0.0, mesh.z_offset])
+    t = math.radians(tilt)
+    axis = np.array([0.0, -math.sin(t), math.cos(t)])  # the torus's axis turned about x
+    h = ring @ axis
+    rho = np.linalg.norm(ring - h[:, None] * axis, axis=1)
+    np.testing.assert_allclose(np.hypot(rho - big, h), r, atol=1e-7)
+    params = SliceParams(rotate_x=tilt)
+    report = build_report(mesh.part, params, file_name="torus.step", dst=mesh, baselines=())
+    layer = report.meshes[0].layers[j]
+    assert layer.loops == layer.loops_exact == loops
+    assert layer.chord_dev <= params.chord_error + report.reference.resolution_mm, layer
+
+
 def test_corners_inside_one_face_are_ring_vertices(tmp_path):
     """A B-spline face with C0 knot lines (a polyline swept into one face, as many STEP exporters write
     them) has section corners inside it: each must be a ring vertex, else a segment cuts the corner (the

@@ -64,3 +64,73 @@ def test_no_plane_beside_the_ridge_leaves_the_mesh_alone(tmp_path):
     tris = mesh.tris.copy()
     assert add_ridge_rows(mesh, np.array([4.0, 4.2])) == 0
     assert np.array_equal(mesh.tris, tris)
+
+
+# A torus (R 15, r 5) turned 10 degrees about x: its height has a maximum, a minimum and two saddles,
+# the upper one r - R sin(10 deg) above the centre. Just below that saddle a plane cuts two loops (a
+# crescent on each side of the hole), just above it one.
+TORUS_R, TORUS_r, TORUS_TILT = 15.0, 5.0, 10.0
+TORUS_SADDLE = TORUS_r - TORUS_R * np.sin(np.radians(TORUS_TILT))
+
+
+def _torus_mesh(tmp_path, deflection=C.TOPO_DEFLECTION_MAX_MM):
+    from worker.dst.step_io import orient
+
+    part = read_step(write_step(build_part("torus", major=TORUS_R, minor=TORUS_r), tmp_path / "torus.step"))
+    part = orient(part, (TORUS_TILT, 0.0, 0.0))
+    return build_topomesh(part.solids[0], deflection=deflection, angular=C.TOPO_ANGULAR_RAD, merge_tol=1e-8)
+
+
+def _torus_distance(xyz: np.ndarray) -> np.ndarray:
+    """Distance of points from the turned torus's surface, in closed form."""
+    t = np.radians(TORUS_TILT)
+    axis = np.array([0.0, -np.sin(t), np.cos(t)])  # the z axis turned about x
+    h = xyz @ axis
+    rho = np.linalg.norm(xyz - h[:, None] * axis, axis=1)
+    return np.abs(np.hypot(rho - TORUS_R, h) - TORUS_r)
+
+
+def _loops_at(mesh, z: float) -> int:
+    from worker.dst.sections import cut_topology
+
+    return len(cut_topology(mesh, np.array([z]), on_plane_tol=C.ON_PLANE_TOL_MM).loops)
+
+
+def test_edges_grazing_planes_beside_a_saddle_are_split_on_the_exact_surface(tmp_path):
+    """Planes 0.2 um below and above the turned torus's saddle: topology edges near the saddle have
+    both ends on one side of a plane while the torus between them passes it, so the coarse mesh's
+    section joins the two crescents, or parts the one loop (this mesh errs at one of the planes).
+    Split at the exact extreme along each such edge, the mesh's section has the exact number of loops
+    at both; the mesh is still a closed, consistently oriented manifold; every new node is on the
+    torus (closed form), off the planes, and at its (u, v) in every triangle."""
+    from worker.dst.ridges import split_grazed_edges
+
+    mesh = _torus_mesh(tmp_path)
+    exact = {TORUS_SADDLE - 2e-4: 2, TORUS_SADDLE + 2e-4: 1}
+    before = {z: _loops_at(mesh, z) for z in exact}
+    assert before != exact, "the coarse mesh is right at both planes: this test would show nothing"
+    n0, volume0 = mesh.n_nodes, signed_volume(mesh.xyz, mesh.tris)
+    added = split_grazed_edges(mesh, np.array(sorted(exact)))
+    assert {z: _loops_at(mesh, z) for z in exact} == exact
+    assert added == mesh.n_nodes - n0 > 0
+    assert edge_defects(mesh.tris, mesh.n_nodes) == (0, 0)
+    assert np.array_equal(np.unique(mesh.tris), np.arange(mesh.n_nodes))
+    new = np.arange(n0, mesh.n_nodes)
+    assert _torus_distance(mesh.xyz[new]).max() < 1e-9
+    assert (np.abs(mesh.xyz[new, 2, None] - np.array(list(exact))) > 1e-9).all()
+    for t in np.flatnonzero(np.isin(mesh.tris, new).any(axis=1)).tolist():
+        fe = mesh.faces[int(mesh.tri_face[t])]
+        for node, (u, v) in zip(mesh.tris[t].tolist(), mesh.tri_uv[t].tolist(), strict=True):
+            assert np.linalg.norm(np.subtract(fe.point(u, v), mesh.xyz[node])) < 1e-7
+    assert abs(signed_volume(mesh.xyz, mesh.tris) - volume0) < 0.01
+
+
+def test_planes_no_edge_grazes_leave_the_mesh_alone(tmp_path):
+    """Planes far from the torus's saddles and extremes (and one through the middle, which crosses
+    every edge it reaches) split nothing."""
+    from worker.dst.ridges import split_grazed_edges
+
+    mesh = _torus_mesh(tmp_path)
+    tris = mesh.tris.copy()
+    assert split_grazed_edges(mesh, np.array([TORUS_SADDLE - 0.5, 0.0, TORUS_SADDLE + 0.5])) == 0
+    assert np.array_equal(mesh.tris, tris)
