@@ -220,6 +220,20 @@ class FaceEval:
         x, y, z = self.point(u, v)
         return x, y, z, u, v
 
+    def height_extreme_on_uv_segment(self, ua: float, va: float, ub: float, vb: float, sign: float) -> float:
+        """The fraction along the (u, v) segment a->b of the surface's lowest (``sign`` +1) or highest
+        (-1) point on it (bounded Brent: the one in the basin it finds), to ~1e-7: the height there is
+        the extreme's to ~1e-14 of the segment's sag (and the point at it exact)."""
+        ad = self.ad
+        du, dv = ub - ua, vb - va
+        res = minimize_scalar(
+            lambda x: sign * ad.Value(ua + x * du, va + x * dv).Z(),
+            bounds=(0.0, 1.0),
+            method="bounded",
+            options={"xatol": 1e-7},
+        )
+        return float(res.x)
+
     def walk_level(
         self, u: float, v: float, c: float, target: tuple[float, float], *, step: float, max_steps: int
     ) -> tuple[float, float, float, float]:

@@ -25,8 +25,8 @@ from __future__ import annotations
 
 import numpy as np
 from OCP.GeomAbs import GeomAbs_Line, GeomAbs_Plane
-from scipy.optimize import minimize_scalar
 
+from worker.dst.constants import ON_PLANE_TOL_MM
 from worker.dst.lowest import face_optimum_from_nodes, snap_local_extremes
 from worker.dst.topomesh import TopoMesh
 
@@ -38,6 +38,7 @@ _LINE_TOL_MM = 1e-9  # ... within this of the extreme's height: a horizontal lin
 _ON_LINE_REL = 1e-6
 _GRAZE_ROUNDS = 3  # edges made by grazed splits checked again, at most this many times
 _NOISE_MM = 1e-9  # a grazed edge's extreme must pass its plane by more than this (evaluator noise)
+_END_MARGIN = 1e-3  # an extreme this close (a fraction of the edge) to an end is at the end
 _UV_GAP_MM = 1e-6  # a corner whose (u, v) gives a point farther than this from its node is projected
 
 
@@ -102,7 +103,7 @@ def split_grazed_edges(mesh: TopoMesh, planes: np.ndarray, depth: np.ndarray | N
     segment, or the B-rep edge's own curve); where the parabola through its ends and middle comes
     near the plane, the exact extreme along the edge is found (bounded Brent), and if it lies beyond
     the plane by more than ``depth`` (per plane, mm: what a float32 slicer cannot tell from the plane;
-    default ``NOISE_MM``) the edge is split there. Edges made by the splits are checked again (at most
+    default ``_NOISE_MM``) the edge is split there. Edges made by the splits are checked again (at most
     ``_GRAZE_ROUNDS`` times).
 
     Edges inside a flat face are straight (never checked); an edge crossing a plane is the cut's
@@ -158,7 +159,8 @@ def _grazed_edges(
     flat = np.array([fe.ad.GetType() == GeomAbs_Plane for fe in mesh.faces], dtype=bool)
     inner = ~on_brep & ~flat[face]  # edges inside a flat face are straight
     uva, uvb = mesh.tri_uv[t, i].copy(), mesh.tri_uv[t, (i + 1) % 3].copy()
-    za, zb = za[cand], zb[cand]  # the profile's ends: the nodes' heights (inner edges: the surface's, below)
+    # the profile's ends: the nodes' heights (inner edges: the surface's at their (u, v), below)
+    za, zb = za[cand], zb[cand]
     zm = np.full(len(cand), np.nan)
     # the surface at each inner edge's ends and middle (u, v), a batch per face. A node on a B-rep
     # edge carries the (u, v) of the edge's curve on the face, which a sloppy file puts off the node
@@ -207,29 +209,30 @@ def _grazed_edges(
     with np.errstate(divide="ignore", invalid="ignore"):
         tp = np.clip(0.5 + (zb - za) / (8.0 * sag), 0.0, 1.0)
     peak = za + (zb - za) * tp + 4.0 * sag * tp * (1.0 - tp)
-    near = np.flatnonzero(ok & (-sign * (peak - plane) >= -0.25 * np.abs(sag)))
+    # an end within the on-plane tolerance is on the plane for a float32 slicer (and for the cut):
+    # the edge touches it there (a face undulating about a plane within micrometres is left alone)
+    gap = np.minimum(np.abs(z[a[cand]] - plane), np.abs(z[b[cand]] - plane))
+    near = np.flatnonzero(ok & (gap > ON_PLANE_TOL_MM) & (-sign * (peak - plane) >= -0.25 * np.abs(sag)))
     out: dict[tuple[int, int], np.ndarray] = {}
     for c in near.tolist():
         sg = float(sign[c])
         if on_brep[c]:
             ei, sa, sb = span[c]
             ev = mesh.edges[ei]
-            p = np.array(ev.point(ev.height_extreme(min(sa, sb), max(sa, sb), sg)))
+            lo_s, hi_s = min(sa, sb), max(sa, sb)
+            s_x = ev.height_extreme(lo_s, hi_s, sg)
+            x = (s_x - lo_s) / (hi_s - lo_s) if hi_s > lo_s else 0.0
+            p = np.array(ev.point(s_x))
         else:
             fe = mesh.faces[int(face[c])]
-            ad = fe.ad
             (ua, va), (du, dv) = uva[c].tolist(), (uvb[c] - uva[c]).tolist()
-            res = minimize_scalar(
-                lambda x, ad=ad, ua=ua, va=va, du=du, dv=dv, sg=sg: sg * ad.Value(ua + x * du, va + x * dv).Z(),
-                bounds=(0.0, 1.0),
-                method="bounded",
-                options={"xatol": 1e-7},  # the height there within ~1e-14 of the sag: any point will do
-            )
-            x = float(res.x)
+            x = fe.height_extreme_on_uv_segment(ua, va, ua + du, va + dv, sg)
             p = np.array(fe.point(ua + x * du, va + x * dv))
+        if not _END_MARGIN < x < 1.0 - _END_MARGIN:
+            continue  # the profile is monotone: a projected end beyond the plane (an edge off its face)
+        na, nb = int(a[cand[c]]), int(b[cand[c]])
         # beyond the plane, and near the edge (a point elsewhere: a profile not along the edge)
-        if -sg * (p[2] - plane[c]) > depth[plane_j[c]] and _to_segment(p, mesh.xyz[a[cand[c]]], mesh.xyz[b[cand[c]]]) <= band:
-            na, nb = int(a[cand[c]]), int(b[cand[c]])
+        if -sg * (p[2] - plane[c]) > depth[plane_j[c]] and _to_segment(p, mesh.xyz[na], mesh.xyz[nb]) <= band:
             out[(min(na, nb), max(na, nb))] = p
     return out
 
