@@ -134,3 +134,31 @@ def test_planes_no_edge_grazes_leave_the_mesh_alone(tmp_path):
     tris = mesh.tris.copy()
     assert split_grazed_edges(mesh, np.array([TORUS_SADDLE - 0.5, 0.0, TORUS_SADDLE + 0.5])) == 0
     assert np.array_equal(mesh.tris, tris)
+
+
+def test_a_grazed_edge_whose_node_has_a_stale_uv_is_split_at_the_same_exact_point(tmp_path):
+    """A node on a B-rep edge carries the (u, v) of the edge's curve on the face, which a sloppy file
+    puts off the node (boxed_sphere: up to 0.06 mm). The surface along the stored (u, v) is then
+    not the edge's profile, and its extreme can be a point elsewhere (that made a turned boxed_sphere
+    fail its mesh check). Here the ends of the torus's grazed edges get a (u, v) 0.05 mm off in
+    every triangle: each end is projected back, and the splits are the same exact points."""
+    from worker.dst.ridges import split_grazed_edges
+
+    planes = np.array([TORUS_SADDLE - 2e-4, TORUS_SADDLE + 2e-4])
+    clean = _torus_mesh(tmp_path)
+    n0 = clean.n_nodes
+    split_grazed_edges(clean, planes)
+    # the nodes the new ones were put between: the ends of the split edges
+    new = np.arange(n0, clean.n_nodes)
+    ends = np.unique(clean.tris[np.isin(clean.tris, new).any(axis=1)])
+    ends = ends[ends < n0]
+    mesh = _torus_mesh(tmp_path)
+    fe = mesh.faces[0]
+    for node in ends.tolist():
+        tri, corner = np.nonzero(mesh.tris == node)
+        uv = mesh.tri_uv[tri[0], corner[0]]
+        pu = np.subtract(fe.point(uv[0] + 1e-6, uv[1]), fe.point(*uv)) / 1e-6
+        mesh.tri_uv[tri, corner, 0] += 0.05 / np.linalg.norm(pu)  # 0.05 mm along u
+    assert split_grazed_edges(mesh, planes) == len(new)
+    np.testing.assert_allclose(mesh.xyz[n0:], clean.xyz[n0:], atol=1e-9)
+    assert {z: _loops_at(mesh, z) for z in planes} == {planes[0]: 2, planes[1]: 1}
