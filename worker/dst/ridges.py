@@ -1,4 +1,5 @@
-"""Rows of topology-mesh nodes along horizontal ridges and valleys of faces, where a plane needs them.
+"""Topology-mesh nodes where a plane grazes a face: rows along horizontal ridges and valleys, and
+splits of edges the B-rep between whose ends passes a plane.
 
 The top line of a cylinder lying on its side (a horizontal hole, a round bar) is a line of maxima of
 z inside its face: a ridge, all of it at one height. BRepMesh puts node rows along such a face at
@@ -18,7 +19,9 @@ boundary edge, the edge's own height extreme there: where an edge on the surface
 its height is stationary). Every triangle using a split edge is split too (on both faces of a
 boundary edge), so the mesh stays closed and consistently oriented.
 
-Not handled: a ridge that is not its face's extreme, or not an iso-parameter line.
+A ridge that is not its face's extreme, or not an iso-parameter line, gets no row; where a plane
+grazes it (or a saddle, or a tilted crest), the topology edges across it whose B-rep passes the plane
+between their ends are split there instead (``split_grazed_edges``): a node per edge, not a row.
 """
 
 from __future__ import annotations

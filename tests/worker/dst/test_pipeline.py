@@ -335,8 +335,16 @@ def test_a_plane_just_below_a_local_apex_gets_its_small_loop(make_step, monkeypa
     near = np.linalg.norm(pts[:, :2] - centre, axis=1) < 1.0
     assert near.sum() >= 3, "the small loop under the apex is missing"
     np.testing.assert_allclose(np.linalg.norm(pts[near, :2] - centre, axis=1), expected, atol=1e-5)
-    # without the snap the topology mesh's highest dome node is below the plane and the loop is lost
+    # without the snap the topology mesh's highest dome node is below the plane and the loop is lost;
+    # the grazed-edge split alone finds it too (edges across the apex whose surface passes the plane)
     monkeypatch.setattr("worker.dst.ridges.snap_local_extremes", lambda mesh, planes: 0)
+    grazed = slice_step(path, params)
+    assert grazed.stats["grazed_nodes"] > 0
+    pts = ring(grazed)
+    near = np.linalg.norm(pts[:, :2] - centre, axis=1) < 1.0
+    assert near.sum() >= 3
+    np.testing.assert_allclose(np.linalg.norm(pts[near, :2] - centre, axis=1), expected, atol=1e-5)
+    monkeypatch.setattr("worker.dst.ridges.split_grazed_edges", lambda mesh, planes, depth=None: 0)
     plain = slice_step(path, params)
     assert (np.linalg.norm(ring(plain)[:, :2] - centre, axis=1) < 1.0).sum() == 0
 
@@ -371,7 +379,16 @@ def test_a_plane_just_below_the_top_of_a_tilted_rim_gets_its_loop(make_step, mon
     assert (on_cap | on_wall).all()
     assert (radial[on_cap] <= 5.0 + 1e-5).all() and (axial[on_wall] <= 4.0 + 1e-5).all()
     assert on_cap.any() and on_wall.any()
+    # without the snap the grazed-edge split finds the lens too (the rim's edge between two nodes
+    # below the plane passes it); without either it is lost
     monkeypatch.setattr("worker.dst.ridges.snap_local_extremes", lambda mesh, planes: 0)
+    grazed = slice_step(path, params)
+    assert grazed.stats["grazed_nodes"] > 0
+    r = lens(grazed) - base
+    axial = r @ axis
+    radial = np.linalg.norm(r - axial[:, None] * axis, axis=1)
+    assert len(r) >= 3 and ((np.abs(axial - 4.0) < 1e-5) | (np.abs(radial - 5.0) < 1e-5)).all()
+    monkeypatch.setattr("worker.dst.ridges.split_grazed_edges", lambda mesh, planes, depth=None: 0)
     assert len(lens(slice_step(path, params))) == 0
 
 
