@@ -31,6 +31,7 @@ from OCP.GeomAbs import GeomAbs_Line, GeomAbs_Plane
 
 from worker.dst.constants import ON_PLANE_TOL_MM
 from worker.dst.lowest import face_optimum_from_nodes, snap_local_extremes
+from worker.dst.sampling import point_segment_distance
 from worker.dst.topomesh import TopoMesh
 
 # a plane this many topology deflections beside a face's highest (lowest) node may miss its sliver
@@ -216,7 +217,7 @@ def _grazed_edges(
     # the edge touches it there (a face undulating about a plane within micrometres is left alone)
     gap = np.minimum(np.abs(z[a[cand]] - plane), np.abs(z[b[cand]] - plane))
     near = np.flatnonzero(ok & (gap > ON_PLANE_TOL_MM) & (-sign * (peak - plane) >= -0.25 * np.abs(sag)))
-    out: dict[tuple[int, int], np.ndarray] = {}
+    found: list[tuple[int, np.ndarray]] = []  # (candidate, exact point beyond the plane)
     for c in near.tolist():
         sg = float(sign[c])
         if on_brep[c]:
@@ -231,13 +232,22 @@ def _grazed_edges(
             (ua, va), (du, dv) = uva[c].tolist(), (uvb[c] - uva[c]).tolist()
             x = fe.height_extreme_on_uv_segment(ua, va, ua + du, va + dv, sg)
             p = np.array(fe.point(ua + x * du, va + x * dv))
-        if not _END_MARGIN < x < 1.0 - _END_MARGIN:
-            continue  # the profile is monotone: a projected end beyond the plane (an edge off its face)
-        na, nb = int(a[cand[c]]), int(b[cand[c]])
-        # beyond the plane, and near the edge (a point elsewhere: a profile not along the edge)
-        if -sg * (p[2] - plane[c]) > depth[plane_j[c]] and _to_segment(p, mesh.xyz[na], mesh.xyz[nb]) <= band:
-            out[(min(na, nb), max(na, nb))] = p
-    return out
+        # strictly inside (else the profile is monotone: a projected end beyond the plane, an edge
+        # off its face) and beyond the plane
+        if _END_MARGIN < x < 1.0 - _END_MARGIN and -sg * (p[2] - plane[c]) > depth[plane_j[c]]:
+            found.append((c, p))
+    if not found:
+        return {}
+    c = np.array([c for c, _ in found])
+    pts = np.array([p for _, p in found])
+    na, nb = a[cand[c]], b[cand[c]]
+    # near the edge (a point elsewhere: a profile not along the edge)
+    close = point_segment_distance(pts, mesh.xyz[na], mesh.xyz[nb]) <= band
+    return {
+        (int(min(i, j)), int(max(i, j))): p
+        for i, j, p, ok in zip(na.tolist(), nb.tolist(), pts, close.tolist(), strict=True)
+        if ok
+    }
 
 
 def _surface(fe, uv: np.ndarray) -> np.ndarray:
@@ -245,12 +255,6 @@ def _surface(fe, uv: np.ndarray) -> np.ndarray:
     if fe.batch is not None:
         return fe.batch(uv[:, 0], uv[:, 1], False)[0]
     return np.array([fe.point(float(u), float(v)) for u, v in uv]).reshape(-1, 3)
-
-
-def _to_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
-    ab = b - a
-    t = float(np.clip(np.dot(p - a, ab) / max(float(np.dot(ab, ab)), 1e-300), 0.0, 1.0))
-    return float(np.linalg.norm(a + t * ab - p))
 
 
 def _extreme_line(mesh: TopoMesh, f: int, sign: float) -> tuple[int, float, float] | None:

@@ -834,7 +834,7 @@ class RingSampler:
                 return None
         on_plane = np.column_stack([tr[:, :2], np.full(len(tr), xyz[a, 2])])
         ends = np.broadcast_to(xyz[a], on_plane.shape), np.broadcast_to(xyz[b], on_plane.shape)
-        if not len(tr) or _point_segment_distance(on_plane, *ends).max() <= CHORD_FILL * self.chord:
+        if not len(tr) or point_segment_distance(on_plane, *ends).max() <= CHORD_FILL * self.chord:
             if not between:
                 return None  # the curve stays by the chord: the segment was right
             # the ring's vertices between, on the face, must be within reach of it: else the trace
@@ -843,7 +843,7 @@ class RingSampler:
             on_face = [v for v in between if self._in_trim(face, v)]
             if on_face:
                 pts = xyz[on_face]
-                far = _point_segment_distance(pts, *(np.broadcast_to(xyz[q], pts.shape) for q in (a, b)))
+                far = point_segment_distance(pts, *(np.broadcast_to(xyz[q], pts.shape) for q in (a, b)))
                 # farther than half the chord: beyond any arc of a half turn from a to b, which the
                 # run (sampled from its seed path to the budget) would follow; the points the rest
                 # of the ring passes are not lost
@@ -1299,7 +1299,7 @@ class RingSampler:
             self._midpoints_off_the_path(
                 run_face[ri], run_z[ri], run_step[ri], mid, mid_ok, pa, pb, length, run_traced[ri]
             )
-            sag = np.where(mid_ok, _point_segment_distance(np.nan_to_num(mid), pa, pb), 0.0)
+            sag = np.where(mid_ok, point_segment_distance(np.nan_to_num(mid), pa, pb), 0.0)
             self._quarter_sags(solve, sag, mid, mid_ok, length, pending, run_traced[ri])
             bad = ((length > L) | (sag > CHORD_FILL * e)) & (length > 1e-9)
             # No exact point halfway: the plane is tangent to the surface along this segment (the
@@ -1506,7 +1506,7 @@ class RingSampler:
         # (except on a traced run, whose points are all this segment's)
         t_q = _chord_position(pts, pa[q], pb[q])
         ok &= ((t_q > 0.0) & (t_q < 1.0)) | traced[q]
-        q_sag = np.where(ok, _point_segment_distance(pts, pa[q], pb[q]), 0.0)
+        q_sag = np.where(ok, point_segment_distance(pts, pa[q], pb[q]), 0.0)
         n = len(ci)
         peak = _parabola_peak(
             np.stack([t_q[:n], t[ci], t_q[n:]], axis=1),
@@ -1681,7 +1681,7 @@ def distances_to_segments(q: np.ndarray, seg: np.ndarray, chunk: int = 256) -> n
     return out
 
 
-def _point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise distance (mm) from points ``p`` to segments ``a``-``b``; all (n, 3)."""
     t = np.clip(_chord_position(p, a, b), 0.0, 1.0)
     return np.linalg.norm(p - (a + t[:, None] * (b - a)), axis=1)
