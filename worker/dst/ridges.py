@@ -116,10 +116,10 @@ def split_grazed_edges(mesh: TopoMesh, planes: np.ndarray, depth: np.ndarray | N
     planes = np.asarray(planes, dtype=np.float64)
     order = np.argsort(planes)
     planes = planes[order]
-    depth = np.full(len(planes), _NOISE_MM) if depth is None else np.asarray(depth, dtype=np.float64)[order]
     if not len(planes) or not len(mesh.tris):
         return 0
-    depth = np.maximum(depth, _NOISE_MM)
+    depth = np.maximum(0.0 if depth is None else np.asarray(depth, dtype=np.float64)[order], _NOISE_MM)
+    depth = np.broadcast_to(depth, planes.shape)
     added, since = 0, 0
     for _ in range(_GRAZE_ROUNDS):
         n0 = mesh.n_nodes
@@ -190,18 +190,18 @@ def _grazed_edges(
             s = param[(ei, node)] = mesh.edges[ei].parameter_of(tuple(mesh.xyz[node]))
         return s
 
-    span: dict[int, tuple[int, float, float]] = {}  # candidate -> (B-rep edge, parameters of a, b)
+    span: dict[int, tuple[int, float, float]] = {}  # candidate -> (B-rep edge, its parameter span)
     for c in np.flatnonzero(on_brep).tolist():
         na, nb = int(a[cand[c]]), int(b[cand[c]])
         ei = mesh.edge_of[(min(na, nb), max(na, nb))]
         ev = mesh.edges[ei]
         if ev.ad.GetType() == GeomAbs_Line:
             continue  # straight
-        sa, sb = s_of(ei, na), s_of(ei, nb)
-        if ev.closed and abs(sb - sa) > 0.5 * (ev.s1 - ev.s0):
-            continue  # the two nodes straddle a closed edge's seam
-        span[c] = (ei, sa, sb)
-        zm[c] = ev.point(0.5 * (sa + sb))[2]
+        lo_hi = _curve_span(ev, s_of(ei, na), s_of(ei, nb))
+        if lo_hi is None:
+            continue
+        span[c] = (ei, *lo_hi)
+        zm[c] = ev.point(0.5 * sum(lo_hi))[2]
     kc = k[cand]
     sag = zm - 0.5 * (za + zb)  # NaN: not checked
     sign = np.where(sag > 0.0, -1.0, 1.0)  # -1: the edge bulges up, towards the plane above
@@ -221,9 +221,8 @@ def _grazed_edges(
     for c in near.tolist():
         sg = float(sign[c])
         if on_brep[c]:
-            ei, sa, sb = span[c]
+            ei, lo_s, hi_s = span[c]
             ev = mesh.edges[ei]
-            lo_s, hi_s = min(sa, sb), max(sa, sb)
             s_x = ev.height_extreme(lo_s, hi_s, sg)
             x = (s_x - lo_s) / (hi_s - lo_s) if hi_s > lo_s else 0.0
             p = np.array(ev.point(s_x))
@@ -389,16 +388,25 @@ def _edge_extreme_between(mesh: TopoMesh, ei: int, a: int, b: int, sign: float) 
     """The B-rep edge's highest (sign -1) or lowest (+1) point strictly between nodes ``a`` and
     ``b`` (bounded Brent in the curve parameter), or None if it is at either node."""
     ev = mesh.edges[ei]
-    sa = ev.parameter_of(tuple(mesh.xyz[a]))
-    sb = ev.parameter_of(tuple(mesh.xyz[b]))
-    lo, hi = min(sa, sb), max(sa, sb)
-    if ev.closed and hi - lo > 0.5 * (ev.s1 - ev.s0):
-        return None  # the two nodes straddle a closed edge's seam: not worth the bookkeeping
+    lo_hi = _curve_span(ev, ev.parameter_of(tuple(mesh.xyz[a])), ev.parameter_of(tuple(mesh.xyz[b])))
+    if lo_hi is None:
+        return None
+    lo, hi = lo_hi
     s = ev.height_extreme(lo, hi, sign)
     margin = 1e-9 * (hi - lo)
     if not lo + margin < s < hi - margin:
         return None
     return np.array(ev.point(s))
+
+
+def _curve_span(ev, sa: float, sb: float) -> tuple[float, float] | None:
+    """(lo, hi): the curve parameters of two nodes on a B-rep edge, in order; None where they
+    straddle a closed edge's seam (the span between them the other way round: not worth the
+    bookkeeping)."""
+    lo, hi = min(sa, sb), max(sa, sb)
+    if ev.closed and hi - lo > 0.5 * (ev.s1 - ev.s0):
+        return None
+    return lo, hi
 
 
 def _triangulate(
