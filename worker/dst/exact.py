@@ -14,7 +14,9 @@ All points are in millimetres in the part's placement (``BRepAdaptor_*`` apply f
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
+import numpy as np
 from OCP.BRep import BRep_Tool
 from OCP.BRepAdaptor import BRepAdaptor_Curve, BRepAdaptor_Surface
 from OCP.Extrema import Extrema_ExtPC
@@ -48,6 +50,10 @@ _RTOL = 4.5 * 2.220446049250313e-16  # brentq refuses anything below 4 * machine
 
 class ExactFailure(Exception):
     """Newton or a bracketed root did not converge (internal; callers fall back or report)."""
+
+
+class WalkPassed(ExactFailure):
+    """A walk along a section curve passed one of the points it was to avoid."""
 
 
 class FaceEval:
@@ -235,15 +241,26 @@ class FaceEval:
         return float(res.x)
 
     def walk_level(
-        self, u: float, v: float, c: float, target: tuple[float, float], *, step: float, max_steps: int
+        self,
+        u: float,
+        v: float,
+        c: float,
+        target: tuple[float, float],
+        *,
+        step: float,
+        max_steps: int,
+        avoid: Sequence[tuple[float, float]] = (),
     ) -> tuple[float, float, float, float]:
         """From (u, v) on the section ``z = c``, walk along that section curve (the branch through the
         start, never jumping to another) to its point nearest ``target`` (x, y): steps of at most
         ``step`` mm along the curve's tangent, each pulled back onto ``z = c`` along the height
         gradient. Returns (x, y, u, v). Raises ExactFailure if the walk leaves the surface's
-        parameter range, meets a horizontal point (no tangent) or does not arrive."""
+        parameter range, meets a horizontal point (no tangent), does not arrive, or passes one of
+        the points ``avoid`` (x, y; points of the section: within a tenth of a step of one of its
+        steps, between the step's ends)."""
         p, du, dv = self._p, self._du, self._dv
         tx, ty = target
+        far = np.asarray(avoid, dtype=np.float64).reshape(-1, 2)
         for _ in range(max_steps):
             self.ad.D1(u, v, p, du, dv)
             gu, gv = du.Z(), dv.Z()
@@ -256,11 +273,16 @@ class FaceEval:
             if abs(along) < WALK_TOL_MM:
                 return p.X(), p.Y(), u, v
             h = math.copysign(min(abs(along), step), along) / speed
+            x0, y0 = p.X(), p.Y()
             u, v = self._onto_level(u + su * h, v + sv * h, c)
             if u is None:
                 raise ExactFailure("the walk lost the section curve (or met a flat spot)")
             if not (self.u0 <= u <= self.u1 and self.v0 <= v <= self.v1):
                 raise ExactFailure("the walk left the surface")
+            if len(far):
+                self.ad.D0(u, v, p)
+                if _passes(far, (x0, y0), (p.X(), p.Y())):
+                    raise WalkPassed("the walk passed a point to avoid")
         raise ExactFailure("the walk did not arrive")
 
     def section_direction(self, u: float, v: float) -> tuple[float, float] | None:
@@ -429,3 +451,18 @@ class EdgeEval:
             s = brentq(g, sa, sb, xtol=ROOT_XTOL * max(1.0, abs(sb - sa)), rtol=_RTOL)
         p = ad.Value(s)
         return p.X(), p.Y(), p.Z()
+
+
+def _passes(pts: np.ndarray, a: tuple[float, float], b: tuple[float, float]) -> bool:
+    """Whether a step a -> b of a walk along a section curve passes one of ``pts`` (points of the
+    section): one projects strictly between a and b, within a tenth of the step's length of it
+    (the curve's arc over a step of the walk stays closer to its chord; another branch of the
+    section that close would be a pinch, where the walk's answer is not trusted either)."""
+    ab = np.subtract(b, a)
+    length2 = float(ab @ ab)
+    if length2 <= 0.0:
+        return False
+    ap = pts - np.asarray(a)
+    t = ap @ ab / length2
+    off = np.abs(ap[:, 0] * ab[1] - ap[:, 1] * ab[0]) / math.sqrt(length2)
+    return bool(np.any((t > 0.0) & (t < 1.0) & (off <= 0.1 * math.sqrt(length2))))

@@ -91,3 +91,27 @@ def test_a_point_off_the_surface_gets_its_foot_point():
     got = ev.uv_near(tuple(off), (u + 0.01, v))
     assert got == pytest.approx((u, v), abs=1e-7)
     assert np.linalg.norm(np.array(ev.point(*got)) - off) == pytest.approx(1e-4, rel=1e-6)
+
+
+def test_a_walk_along_a_section_arrives_unless_it_passes_a_point_to_avoid():
+    """On the sphere (R 20) at z = 10 the section is the circle of radius sqrt(300): a walk from
+    longitude 0 towards the point at 60 degrees ends there, on the circle. Told to avoid a point of
+    the section it passes (30 degrees), it fails; points it does not pass (-30 degrees on the
+    circle, or 30 degrees but 0.5 mm outside it) do not stop it."""
+    from worker.dst.exact import ExactFailure
+
+    ev = _curved("sphere")
+    c, r = 10.0, math.sqrt(300.0)
+
+    def at(deg: float, radius: float = r) -> tuple[float, float]:
+        return radius * math.cos(math.radians(deg)), radius * math.sin(math.radians(deg))
+
+    u0, v0 = ev.uv_near((*at(0.0), c), (0.0, 0.5))
+    assert ev.point(u0, v0) == pytest.approx((*at(0.0), c), abs=1e-9)
+    kw = {"step": 0.5, "max_steps": 200}
+    for avoid in ((), (at(-30.0),), (at(30.0, r + 0.5),)):
+        x, y, u, v = ev.walk_level(u0, v0, c, at(60.0), avoid=avoid, **kw)
+        assert (x, y) == pytest.approx(at(60.0), abs=1e-6)
+        assert ev.point(u, v)[2] == pytest.approx(c, abs=1e-9)
+    with pytest.raises(ExactFailure, match="passed a point to avoid"):
+        ev.walk_level(u0, v0, c, at(60.0), avoid=[at(30.0)], **kw)
