@@ -31,7 +31,7 @@ iteration), which keeps the Python overhead per ring vertex to a few microsecond
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -47,7 +47,7 @@ from worker.dst.constants import (
     SEGMENT_FILL,
 )
 from worker.dst.errors import TessellationError
-from worker.dst.exact import ExactFailure
+from worker.dst.exact import ExactFailure, FaceEval, WalkPassed
 from worker.dst.sections import SectionTopology
 from worker.dst.topomesh import TopoMesh
 
@@ -219,6 +219,9 @@ class RingSampler:
         # subdivided: (a, b) with a < b -> inner vertex ids from a to b
         self.edge_subdiv: dict[tuple[int, int], list[int]] = {}
         self._edge_param: dict[tuple[int, int], float] = {}
+        self._pred: np.ndarray | None = None  # previous crossing along its loop (``topo.succ`` inverted)
+        self._solving: set[int] = set()  # crossings whose neighbours are being solved
+        self._gaps: list[tuple] = []  # (length, z, face, one end, the other): see settle_gaps
         # vertex ids where the section changes face or meets a B-rep edge: its curvature may jump there
         self.corner_vids: set[int] = set()
         self._kinks: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # face -> interior C0 u and v lines
@@ -294,24 +297,11 @@ class RingSampler:
                 # the order: walked to along that curve, since Newton from the crossing can land on
                 # the other side of a ridge a few micrometres above the plane (a gap narrower than
                 # the crossing's distance from either side).
-                try:
-                    px, py, pu, pv = mesh.faces[face].walk_level(
-                        ur,
-                        vr,
-                        zc,
-                        (float(near[0]), float(near[1])),
-                        step=WALK_STEP_DEFLECTIONS * mesh.deflection,
-                        max_steps=int(d_root / (WALK_STEP_DEFLECTIONS * mesh.deflection)) + 100,
-                    )
-                except ExactFailure:
-                    pass
-                else:
-                    if math.hypot(px - near[0], py - near[1]) < d_root and mesh.faces[face].contains(
-                        pu, pv, tol=TRIM_TOL_MM
-                    ):
-                        x, y = px, py
-                        self.off_trim.discard(c)
-                        self.stats.reordered_crossings += 1
+                walked = self._reordered(c, face, ur, vr, zc, near, d_root)
+                if walked is not None:
+                    x, y = walked
+                    self.off_trim.discard(c)
+                    self.stats.reordered_crossings += 1
         except ExactFailure:
             # The surface at a node's (u, v) can differ from the node (an edge point) by the file's
             # tolerance, so a plane that close to a node is not bracketed: Newton from the seed.
@@ -323,6 +313,95 @@ class RingSampler:
                 ) from None
             x, y, _ = p
         return x, y, zc
+
+    def _reordered(
+        self, c: int, face: int, ur: float, vr: float, zc: float, near: np.ndarray, d_root: float
+    ) -> tuple[float, float] | None:
+        """Where crossing ``c`` goes instead of its root at (``ur``, ``vr``) on ``face``, far from the
+        crossing's own point ``near``: the point of the root's section curve nearest ``near``
+        (walked to), or None to keep the root (no such point inside the face's trim, or none
+        nearer). A walk that passes a neighbouring crossing's point along the loop is taken only if
+        the root does not lie on the curve between those neighbours (``_between_neighbours``): the
+        root can be in order and ``near`` not (r103ec turned (35.3, -158.7, -40.5) at z = 52.5: the
+        root at a tongue's tip, between its neighbours on either side of the tongue; the crossing
+        inside the tongue, whose nearest point down one side lies past the next crossing: the ring
+        crossed the tongue four times), or the root out of order beyond a neighbour (a long edge
+        along a level ridge line: ec_soapbox-A turned (0, 35, 0), where the walk back passes it)."""
+        ev = self.mesh.faces[face]
+        step = WALK_STEP_DEFLECTIONS * self.mesh.deflection
+        target = (float(near[0]), float(near[1]))
+        max_steps = int(d_root / step) + 100
+        pred, succ = self._neighbour_points(c)
+        try:
+            try:
+                px, py, pu, pv = ev.walk_level(
+                    ur, vr, zc, target, step=step, max_steps=max_steps, avoid=[q for q in (pred, succ) if q]
+                )
+            except WalkPassed:
+                # (with a neighbour unknown, the order cannot be told: walked as before)
+                if pred and succ and self._between_neighbours(ev, ur, vr, zc, pred, succ, step, d_root):
+                    return None
+                px, py, pu, pv = ev.walk_level(ur, vr, zc, target, step=step, max_steps=max_steps)
+        except ExactFailure:
+            return None
+        if math.hypot(px - target[0], py - target[1]) < d_root and ev.contains(pu, pv, tol=TRIM_TOL_MM):
+            return px, py
+        return None
+
+    def _between_neighbours(
+        self,
+        ev: FaceEval,
+        ur: float,
+        vr: float,
+        zc: float,
+        pred: tuple[float, float],
+        succ: tuple[float, float],
+        step: float,
+        reach: float = 0.0,
+    ) -> bool:
+        """Whether the section point at (``ur``, ``vr``) of face ``ev`` lies on the section curve
+        from ``pred`` to ``succ`` (x, y): a trace along it from one (in the loops' direction) to
+        the other passes within a tenth of a step of it. False where the trace fails, or runs
+        farther than 4 times the neighbours' distance and ``reach`` (the point's distance from its
+        crossing) without arriving."""
+        x, y = ev.point(ur, vr)[:2]
+        try:
+            u0, v0 = ev.uv_near((*pred, zc), (ur, vr))
+            direction = ev.section_direction(*ev.uv_near((*succ, zc), (ur, vr)))
+            if direction is None:
+                return False
+            longest = 4.0 * (math.hypot(succ[0] - pred[0], succ[1] - pred[1]) + reach) + step
+            trace = ev.trace_level(u0, v0, zc, succ, direction, step=step, max_length=longest)
+        except ExactFailure:
+            return False
+        path = np.array([pred, *(t[:2] for t in trace), succ], dtype=np.float64)
+        seg = np.stack([path[:-1], path[1:]], axis=1)
+        return bool(distances_to_segments(np.array([[x, y]]), seg).min() <= 0.1 * step)
+
+    def _neighbour_points(self, c: int) -> tuple[tuple[float, float] | None, tuple[float, float] | None]:
+        """The exact (x, y) of crossing ``c``'s neighbours along its loop (before it, after it), solved
+        here if they are not yet (not while another crossing's neighbours are being solved: no
+        chains along the loop); None for one without an exact point."""
+        if self._pred is None:
+            self._pred = np.empty_like(self.topo.succ)
+            self._pred[self.topo.succ] = np.arange(len(self.topo.succ))
+        nested = bool(self._solving)
+        self._solving.add(c)
+        try:
+            out: list[tuple[float, float] | None] = []
+            for q in (int(self._pred[c]), int(self.topo.succ[c])):
+                vid = self.cross_vid.get(q)
+                if vid is None and not nested and q != c:
+                    try:
+                        vid = self.crossing(q)
+                    except TessellationError:
+                        vid = None
+                out.append(
+                    None if vid is None else (float(self.pool.xyz[vid, 0]), float(self.pool.xyz[vid, 1]))
+                )
+            return out[0], out[1]
+        finally:
+            self._solving.discard(c)
 
     def _root_on_face(self, face: int, a: int, b: int, uva, uvb, zc: float) -> tuple[float, ...]:
         """``FaceEval.root_on_uv_segment`` of face ``face`` between nodes ``a`` and ``b`` at (u, v)
@@ -612,6 +691,38 @@ class RingSampler:
             runs.append(_Run(int(faces[i0]), s, uv, step, vids[r], vids[r1], n_seg, zc, j, moved))
         return runs
 
+    def _suspect_segments(self, ring: list[int], face_of: dict[int, int]) -> list[int]:
+        """The segments of ``ring`` (by their start's position) that leave or reach a vertex inside a
+        face against the exact curve's own direction there, where the ring turns sharply (see
+        ``_excursion_runs``); only segments in ``face_of`` (vertex id -> face of the segment it
+        starts) are looked at."""
+        n = len(ring)
+        if n < 3:
+            return []
+        xyz = self.pool.xyz
+        p = xyz[ring, :2]
+        d = np.roll(p, -1, axis=0) - p
+        length = np.hypot(d[:, 0], d[:, 1])
+        unit = d / np.where(length > 0, length, 1.0)[:, None]
+        turn = np.einsum("ij,ij->i", np.roll(unit, 1, axis=0), unit)
+        sharp = (turn < EXCURSION_TURN_COS) & (length > 1e-9) & (np.roll(length, 1) > 1e-9)
+        if not sharp.any():
+            return []
+        faces = self.mesh.faces
+        suspects: set[int] = set()  # segments against the curve's direction at an end
+        for i in np.flatnonzero(sharp).tolist():
+            v = ring[i]
+            if v in self.corner_vids:  # at a corner the turn is the B-rep's
+                continue
+            for k in (i, (i - 1) % n):  # the segment leaving v, the one reaching it
+                face = face_of.get(ring[k])
+                if face is None or k in suspects:
+                    continue
+                direction = faces[face].section_direction(*_uv_of(faces[face], xyz[v]))
+                if direction is not None and np.dot(direction, unit[k]) < EXCURSION_TANGENT_COS:
+                    suspects.add(k)
+        return sorted(suspects)
+
     def _excursion_runs(
         self, ring: list[int], face_of: dict[int, int], li: int, *, stretches: bool
     ) -> list[tuple[int, int, _Run]]:
@@ -636,32 +747,12 @@ class RingSampler:
         vertices between dropped.
         """
         n = len(ring)
-        if n < 3:
+        ks = self._suspect_segments(ring, face_of)
+        if not ks:
             return []
         xyz = self.pool.xyz
         p = xyz[ring, :2]
-        d = np.roll(p, -1, axis=0) - p
-        length = np.hypot(d[:, 0], d[:, 1])
-        unit = d / np.where(length > 0, length, 1.0)[:, None]
-        turn = np.einsum("ij,ij->i", np.roll(unit, 1, axis=0), unit)
-        sharp = (turn < EXCURSION_TURN_COS) & (length > 1e-9) & (np.roll(length, 1) > 1e-9)
-        if not sharp.any():
-            return []
         corner = np.array([v in self.corner_vids for v in ring], dtype=bool)
-        faces = self.mesh.faces
-        suspects: set[int] = set()  # segments against the curve's direction at an end
-        for i in np.flatnonzero(sharp & ~corner).tolist():  # at a corner the turn is the B-rep's
-            v = ring[i]
-            for k in (i, (i - 1) % n):  # the segment leaving v, the one reaching it
-                face = face_of.get(ring[k])
-                if face is None or k in suspects:
-                    continue
-                direction = faces[face].section_direction(*_uv_of(faces[face], xyz[v]))
-                if direction is not None and np.dot(direction, unit[k]) < EXCURSION_TANGENT_COS:
-                    suspects.add(k)
-        if not suspects:
-            return []
-        ks = sorted(suspects)
         if stretches:
             # clusters never across a corner: a stretch is traced on one face (M6-1x12-countersunk-screw
             # turned had suspects either side of the ring's end, a corner between them)
@@ -980,6 +1071,8 @@ class RingSampler:
             rings = {li: ring}
             self._replace_excursions(rings, face_of)
             return rings[li]
+        if self._retrace_segments(li, cl, ring, starts, face_of):
+            ring = self._pinned_ring(cl)
         runs = self._excursion_runs(ring, face_of, li, stretches=False)
         if not runs:
             return ring
@@ -995,6 +1088,67 @@ class RingSampler:
             self.subdiv[c] = sub[:at] + run_pts[1:-1] + sub[at:]
             self.stats.excursions += 1
         return self._pinned_ring(cl)
+
+    def _retrace_segments(
+        self,
+        li: int,
+        cl: list[int],
+        ring: list[int],
+        starts: dict[int, tuple[int, int]],
+        face_of: dict[int, int],
+    ) -> bool:
+        """Re-sample (in ``subdiv``) the segments of pinned loop ``li`` (crossings ``cl``, sampled
+        ``ring``) whose points go against the exact curve (``_suspect_segments``), each whole from
+        its crossing to the next along a trace of the exact curve: its inner points are not
+        pinned. Where the plane grazes a crest, a segment's curve can run round the tip of a tongue
+        the topology mesh does not reach (r103ec turned (35.3, -158.7, -40.5) at z = 54.3: 0.3 mm
+        beyond the crossings), and its seeds, across the tongue, put points on either side of it
+        in turn: a zigzag that re-sampling its segments one by one keeps. A segment is replaced only
+        where the new points pass within the budget of every old point on the face (the old ones
+        are exact points of the curve). Whether any was replaced."""
+        ks = self._suspect_segments(ring, face_of)
+        if not ks:
+            return False
+        n = len(ring)
+        at_pos = {v: i for i, v in enumerate(ring)}
+        succ = self.topo.succ
+        segs: dict[int, tuple[int, int]] = {}  # crossing -> ring positions of its segment's ends
+        for k in ks:
+            c, _ = starts[ring[k]]
+            if c in segs or not self.subdiv.get(c):
+                continue
+            i = at_pos.get(self.crossing(c))
+            end = self.crossing(int(succ[c]))
+            if i is None or end == ring[i]:
+                continue
+            j = i + len(self.subdiv[c]) + 1
+            if ring[j % n] != end or j - i >= n - 1:  # (the ring deduplicated points of it)
+                continue
+            # on one face, no vertex of it passed twice (such are not in face_of: trj7_b1-ec-214)
+            faces = {face_of.get(ring[q % n]) for q in range(i, j)}
+            if None in faces or len(faces) != 1:
+                continue
+            segs[c] = (i, j)
+        xyz = self.pool.xyz
+        found = []
+        for c, (i, j) in segs.items():
+            run = self._stretch_run(li, ring, xyz[ring, :2], face_of[ring[i]], i, j)
+            if run is not None and run.traced:
+                found.append((c, i, j, run))
+        if not found:
+            return False
+        replaced = False
+        for (c, i, j, _), pts in zip(found, self._sample_traced([f[3] for f in found]), strict=True):
+            if pts is None:
+                continue
+            piece = (i, j, pts[1:-1])
+            if self._lost_pieces(ring, [piece], _splice(ring, [piece]), face_of):
+                self.stats.excursion_failures += 1
+                continue
+            self.subdiv[c] = pts[1:-1]
+            self.stats.excursions += 1
+            replaced = True
+        return replaced
 
     def traced_loop(self, li: int) -> list[int] | None:
         """A ring of loop ``li`` from the exact section curve alone, for a loop on one face with no
@@ -1518,17 +1672,40 @@ class RingSampler:
         self.stats.quarter_checks += n
 
     def _record_gaps(self, gap, length, pa, pb, z, face) -> None:
-        """Count the segments ``gap`` (kept over budget: no exact point between their ends)."""
+        """Count the segments ``gap`` (kept over budget: no exact point between their ends), and keep
+        them for ``settle_gaps``."""
         if not gap.any():
             return
         self.stats.tolerance_gaps += int(gap.sum())
         g = int(np.argmax(np.where(gap, length, -1.0)))
         if length[g] > self.stats.max_gap_mm:
-            self.stats.max_gap_mm = float(length[g])
-            self.stats.max_gap_at = (
-                f"z={z[g]:.4f} mm, face {face[g] + 1}, from {np.round(pa[g], 4).tolist()} "
-                f"to {np.round(pb[g], 4).tolist()}"
+            self.stats.max_gap_mm, self.stats.max_gap_at = (
+                float(length[g]),
+                _gap_place(z[g], face[g], pa[g], pb[g]),
             )
+        for k in np.flatnonzero(gap).tolist():
+            self._gaps.append((float(length[k]), float(z[k]), int(face[k]), pa[k].tolist(), pb[k].tolist()))
+
+    def settle_gaps(self, rings: Iterable[Sequence[int]]) -> None:
+        """Count again (``tolerance_gaps``, ``max_gap_*``) only the gaps that are segments of the final
+        ``rings``: a segment re-sampled after it was kept over budget (along a trace of the curve
+        round an excursion its seeds skipped) is no gap of the mesh."""
+        xy = self.pool.xyz[:, :2]
+        ends: set[tuple[float, ...]] = set()
+        for ring in rings:
+            if len(ring) < 2:
+                continue
+            p = xy[np.asarray(ring)]
+            q = np.roll(p, -1, axis=0)
+            ends.update(map(tuple, np.column_stack([p, q]).tolist()))
+            ends.update(map(tuple, np.column_stack([q, p]).tolist()))
+        kept = [g for g in self._gaps if (*g[3][:2], *g[4][:2]) in ends]
+        self.stats.tolerance_gaps = len(kept)
+        worst = max(kept, default=None, key=lambda g: g[0])
+        self.stats.max_gap_mm = 0.0 if worst is None else worst[0]
+        self.stats.max_gap_at = (
+            "" if worst is None else _gap_place(worst[1], worst[2], *(np.array(worst[k]) for k in (3, 4)))
+        )
 
     def _inside_face(self, run: _Run, uv: np.ndarray) -> bool:
         """Is a point solved on the run's surface (at these face parameters) inside the face's trimmed
@@ -1739,6 +1916,10 @@ def _splice(ring: list[int], pieces: list[tuple[int, int, list[int]]]) -> list[i
             k = (k + 1) % n
         if k == start:
             return out
+
+
+def _gap_place(z: float, face: int, pa: np.ndarray, pb: np.ndarray) -> str:
+    return f"z={z:.4f} mm, face {face + 1}, from {np.round(pa, 4).tolist()} to {np.round(pb, 4).tolist()}"
 
 
 def _uv_of(ev, p: np.ndarray) -> tuple[float, float]:

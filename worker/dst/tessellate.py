@@ -65,6 +65,7 @@ def tessellate_solid(sampler: RingSampler) -> tuple[np.ndarray, dict]:
     # A ring that degenerates to one point (a dome top exactly on a plane) makes zipper triangles with
     # a repeated corner. Such a triangle adds the edges a->b and b->a, which cancel: dropping it keeps
     # the mesh closed.
+    sampler.settle_gaps(rings.values())
     tris = np.concatenate([*strips, np.asarray(out, dtype=np.int64).reshape(-1, 3)])
     tris = tris[~repeated_corner(tris)]
     stats = {

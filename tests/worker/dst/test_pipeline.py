@@ -454,6 +454,30 @@ def test_a_plane_grazing_a_tilted_ridge_reaches_the_tip_of_its_tongue(make_step)
     assert max(layer.vertex_dev for layer in dst.layers) <= report.reference.resolution_mm
 
 
+def test_a_crossing_at_a_tongues_tip_is_not_walked_past_its_neighbour(make_step):
+    """A rounded edge (radius 1 mm) turned to the top and tilted 0.5 degree: at z = 13.9 a long
+    topology edge's root lies at the tip of the plane's tongue, between the crossings on either
+    side of it, and far from the edge's own crossing (the edge is nearly level). The reordering
+    meant for long triangles across a level ridge walked it along the section to the point nearest
+    that crossing, down one side past the next crossing: the ring went there and back (perimeter 1%
+    long, chord_dev 0.018 mm). A walk that passes a neighbouring crossing is not taken where the root
+    lies on the curve between the neighbours: every plane has the exact perimeter to the
+    reference's resolution and is within budget."""
+    from worker.dst.report import build_report
+
+    path = make_step("filleted_ridge", radius=1.0, nurbs=False)
+    params = SliceParams(layer_height=0.2, rotate_x=45.0, rotate_y=0.5)
+    mesh = slice_step(path, params)
+    assert_watertight(mesh)
+    assert mesh.stats["reordered_crossings"] > 0  # (the walk still moves the ones it should)
+    report = build_report(mesh.part, params, file_name=str(path), dst=mesh, baselines=())
+    (dst,) = report.meshes
+    for layer in dst.layers:
+        assert layer.perimeter_err < 1e-3, layer
+        assert layer.chord_dev <= params.chord_error + report.reference.resolution_mm, layer
+    assert not [w for w in report.warnings if "crosses itself" in w], report.warnings
+
+
 def test_an_excursion_that_cannot_be_sampled_leaves_its_ring_as_it_was(make_step, monkeypatch):
     """The excursion check may improve a ring, never fail a build: a traced run that cannot meet the
     budget (simulated) is counted and its ring keeps its points; the mesh is closed as before."""
@@ -644,3 +668,48 @@ def test_a_caps_nodes_are_told_inside_its_ring():
     u_shape = np.array([[0, 0], [3, 0], [3, 2], [2, 2], [2, 1], [1, 1], [1, 2], [0, 2]], dtype=float)
     q = np.array([[0.5, 1.5], [2.5, 1.5], [1.5, 0.5], [1.5, 1.5], [4.0, 1.0], [-0.1, 0.5]])
     assert _inside(q, u_shape).tolist() == [True, True, True, False, False, False]
+
+
+def test_a_pinned_segment_whose_points_come_out_of_order_is_traced_again_whole(make_step, monkeypatch):
+    """A pinned loop keeps its crossings (the kept triangles use them), not the points between two
+    of them: where those come out of order (r103ec turned (35.3, -158.7, -40.5) at z = 54.3: seeds
+    across a narrow tongue put them on either side of it in turn, a zigzag that re-sampling its
+    pieces one by one keeps), the segment is traced along the exact curve from crossing to crossing
+    and sampled again, whole. Here the DST build's pinned segments (the step box's bottom and top
+    squares) have their points reversed as they are sampled: every ring still runs once round its
+    square, the mesh closed."""
+    from worker.dst.sampling import RingSampler
+
+    real_runs, real_pinned = RingSampler._sample_runs, RingSampler.pinned_loop
+    scrambled = []
+
+    def sample_runs(self, runs):
+        out = real_runs(self, runs)
+        if getattr(self, "scramble", False):
+            for run, pts in zip(runs, out, strict=True):
+                if not run.traced and len(pts) >= 5:
+                    pts[1:-1] = pts[-2:0:-1]
+                    scrambled.append(run)
+        return out
+
+    def pinned_loop(self, li):
+        self.scramble = self.keep_crossings  # the DST build's rings, not the report's reference
+        try:
+            return real_pinned(self, li)
+        finally:
+            self.scramble = False
+
+    monkeypatch.setattr(RingSampler, "_sample_runs", sample_runs)
+    monkeypatch.setattr(RingSampler, "pinned_loop", pinned_loop)
+    mesh = slice_step(make_step("step_box"), SliceParams(layer_height=0.2))
+    assert len(scrambled) >= 8  # four sides of each square
+    assert_watertight(mesh)
+    assert_slab_property(mesh)
+    e, plane = ring_edges(mesh)
+    length = np.bincount(
+        plane, weights=np.linalg.norm(mesh.vertices[e[:, 0]] - mesh.vertices[e[:, 1]], axis=1)
+    )
+    for j, z in enumerate(mesh.planes.z):
+        if abs(z - 4.1) > 1e-9:  # (the step's flat face lies on plane 4.1)
+            assert length[j] == pytest.approx(80.0 if z < 4.1 else 40.0, abs=1e-6), (j, z)
+    assert mesh.stats["excursions"] == len(scrambled)

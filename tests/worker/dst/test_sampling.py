@@ -433,3 +433,53 @@ def test_a_surface_kink_the_curve_does_not_cross_between_the_runs_ends_is_no_rin
     (kink,) = sampler._kink_points(run_to(beyond, beyond))
     assert sampler.pool.xyz[kink[2]] == pytest.approx((20.0, 0.0, z), abs=1e-9)
     assert kink[2] in sampler.corner_vids
+
+
+def test_only_gaps_left_in_the_final_rings_are_counted(cone_sampler):
+    """A segment kept over budget (no exact point between its ends) is a gap of the mesh only if it
+    is still a ring segment at the end: one that a later trace re-sampled (r103ec turned: the
+    zigzag across a tongue's neck, 0.26 mm, reported as the build's longest gap) is not counted."""
+    base, _, _ = cone_sampler
+    sampler = RingSampler(base.mesh, base.topo, VertexPool(), segment_length=1.0, chord_error=0.01)
+    angles = np.linspace(0.0, 2.0 * math.pi, 8, endpoint=False)
+    ring = [sampler.pool.add(tuple(_on_circle(a)), 0) for a in angles]
+    xyz = sampler.pool.xyz
+    kept, gone = (ring[0], ring[1]), (ring[2], ring[5])  # a ring segment; a chord across the ring
+    pa, pb = xyz[[kept[0], gone[0]]], xyz[[kept[1], gone[1]]]
+    length = np.linalg.norm(pb - pa, axis=1)
+    sampler._record_gaps(np.array([True, True]), length, pa, pb, np.full(2, Z), np.zeros(2, dtype=int))
+    assert sampler.stats.tolerance_gaps == 2 and sampler.stats.max_gap_mm == pytest.approx(length[1])
+    sampler.settle_gaps([ring])
+    assert sampler.stats.tolerance_gaps == 1
+    assert sampler.stats.max_gap_mm == pytest.approx(length[0])
+    a, b = (np.round(xyz[v], 4).tolist() for v in kept)
+    assert sampler.stats.max_gap_at == f"z={Z:.4f} mm, face 1, from {a} to {b}"
+    sampler.settle_gaps([ring[::-1]])  # either way round
+    assert sampler.stats.tolerance_gaps == 1
+    sampler.settle_gaps([ring[:2] + ring[3:]])
+    assert sampler.stats.tolerance_gaps == 1  # (ring[0] -> ring[1] still there)
+    sampler.settle_gaps([[ring[0], *ring[2:]]])
+    assert (
+        sampler.stats.tolerance_gaps == 0 and sampler.stats.max_gap_mm == 0.0 and not sampler.stats.max_gap_at
+    )
+
+
+def test_a_point_between_two_others_along_the_section_is_told_from_one_beyond_them(cone_sampler):
+    """``RingSampler._between_neighbours``: a point of the section (the circle of radius 7.5, run
+    counter-clockwise, the loops' direction) lies between two others where a trace from the first
+    to the second passes it: 0.5 rad lies between 0.2 and 0.9, -0.2 and 1.2 do not; from 0.9 to 0.2
+    the curve runs the long way round, through 1.2 and not 0.5 (within the trace's reach)."""
+    sampler, cone, _ = cone_sampler
+    ev = sampler.mesh.faces[cone]
+
+    def between(a: float, lo: float, hi: float, reach: float = 0.0) -> bool:
+        u, v = ev.uv_near(tuple(_on_circle(a)), (0.0, 0.0))
+        ends = (tuple(_on_circle(lo)[:2]), tuple(_on_circle(hi)[:2]))
+        return sampler._between_neighbours(ev, u, v, Z, *ends, 0.1, reach)
+
+    assert between(0.5, 0.2, 0.9)
+    assert not between(-0.2, 0.2, 0.9)
+    assert not between(1.2, 0.2, 0.9)
+    assert not between(1.2, 0.9, 0.2)  # the long way round is beyond the trace's reach
+    assert between(1.2, 0.9, 0.2, reach=12.0)
+    assert not between(0.5, 0.9, 0.2, reach=12.0)
