@@ -88,12 +88,13 @@ def face_optimum_from_nodes(mesh: TopoMesh, f: int, sel: np.ndarray, sign: float
 
 def _face_optimum(fe, uv0: np.ndarray, sign: float) -> tuple[float, float]:
     """(u, v) of the face's lowest (sign=+1) or highest (sign=-1) point reached from ``uv0`` by bounded
-    L-BFGS on the untrimmed surface (the caller checks the trim). A periodic direction is not bounded:
-    the surface goes on past its seam (a torus turned to an odd angle has its lowest point just across
-    the seam from its lowest node: bounded there, the search stopped on the seam 2.2 um higher).
-    There the search is evaluated, and its result given, on the period nearest ``uv0``: a line search
-    can try a step of many periods, which OCCT refuses to evaluate (bug24595_281390 turned (-47.0,
-    -178.7, 118.8): "Geom_BSplineSurface::PeriodicNormalization: Vparameter is too great number")."""
+    L-BFGS on the untrimmed surface (the caller checks the trim). A periodic direction is not bounded
+    by its seam, only to a period either side of ``uv0`` (``_window``): the surface goes on past the
+    seam (a torus turned to an odd angle has its lowest point just across the seam from its lowest
+    node: bounded there, the search stopped on the seam 2.2 um higher). The search is evaluated, and
+    its result given, on the period nearest ``uv0``: a line search can try a step of many periods,
+    which OCCT refuses to evaluate (bug24595_281390 turned (-47.0, -178.7, 118.8):
+    "Geom_BSplineSurface::PeriodicNormalization: Vparameter is too great number")."""
     start = (float(uv0[0]), float(uv0[1]))
 
     def fun(x: np.ndarray) -> tuple[float, np.ndarray]:
@@ -106,12 +107,20 @@ def _face_optimum(fe, uv0: np.ndarray, sign: float) -> tuple[float, float]:
         jac=True,
         method="L-BFGS-B",
         bounds=[
-            (None, None) if fe.period(0) else (fe.u0, fe.u1),
-            (None, None) if fe.period(1) else (fe.v0, fe.v1),
+            _window(start[0], fe.period(0)) if fe.period(0) else (fe.u0, fe.u1),
+            _window(start[1], fe.period(1)) if fe.period(1) else (fe.v0, fe.v1),
         ],
         options={"ftol": 1e-15, "gtol": 1e-12},
     )
     return fe.same_branch((float(res.x[0]), float(res.x[1])), start)
+
+
+def _window(start: float, period: float) -> tuple[float, float]:
+    """Bounds one period either side of ``start`` in a periodic direction: every extreme of the
+    surface has a copy within half a period of it, so none is lost, and the search cannot wander
+    off by many periods (bug24595_281390 turned (122.2, -174.3, -59.3): a line search ran 23
+    periods out along a closed B-spline's v and L-BFGS-B's next point was NaN)."""
+    return start - period, start + period
 
 
 def _edge_extreme(mesh: TopoMesh, ei: int, sign: float) -> tuple[float, np.ndarray]:

@@ -313,20 +313,43 @@ def test_a_tongue_beyond_a_pinned_loops_crossings_is_sampled_round_its_tip():
     assert not [w for w in report.warnings if "crosses itself" in w], report.warnings
 
 
-def test_a_periodic_faces_lowest_point_search_stays_on_a_period_occt_evaluates():
-    """bug24595_281390 turned (-47.0, -178.7, 118.8): the search for a periodic B-spline face's
-    lowest point (L-BFGS, not bounded along the period, so that it may cross the seam) tried a step
-    of so many periods that OCCT refused to evaluate the surface there ("Geom_BSplineSurface::
-    PeriodicNormalization: Vparameter is too great number") and the job failed with OCCT's
-    exception. The search is evaluated on the period nearest its start, and the part is sliced."""
+@pytest.mark.parametrize("turn", [(-47.0, -178.7, 118.8), (122.2, -174.3, -59.3)], ids=str)
+def test_a_periodic_faces_lowest_point_search_stays_on_a_period_occt_evaluates(turn):
+    """bug24595_281390 turned: the search for a periodic B-spline face's lowest point (L-BFGS, not
+    bounded by the seam, so that it may cross it). Turned (-47.0, -178.7, 118.8) it tried a step of
+    so many periods that OCCT refused to evaluate the surface there ("Geom_BSplineSurface::
+    PeriodicNormalization: Vparameter is too great number"); turned (122.2, -174.3, -59.3) (a
+    random-turn scan, seed 2525) a line search ran 23 periods out and L-BFGS-B's next point was NaN
+    ("cannot convert float NaN to integer"): both jobs failed. The search is evaluated on the period
+    nearest its start and bounded to a period either side of it; the part is sliced, and its height
+    is the exact one (OCCT's distances from planes above and below it)."""
     path = CORPUS / "freeform" / "bug24595_281390.stp"
     if not path.is_file():
         pytest.skip(f"the shared STEP corpus is not beside this checkout ({CORPUS})")
-    params = _params(path).model_copy(update=dict(zip(ROTATION_FIELDS, (-47.0, -178.7, 118.8), strict=True)))
+    params = _params(path).model_copy(update=dict(zip(ROTATION_FIELDS, turn, strict=True)))
     mesh = slice_step(path, params)
     assert_watertight(mesh)
     assert_slab_property(mesh)
     assert 0.97 < mesh.stats["mesh_volume_mm3"] / mesh.part.volume_mm3 < 1.03
+    lowest, highest = _exact_z_extent(mesh.part.compound, mesh.z_offset)
+    assert abs(mesh.z_offset - lowest) < 1e-6
+    assert abs(mesh.stats["height_mm"] - (highest - lowest)) < 1e-6
+
+
+def _exact_z_extent(shape, near: float, reach: float = 1000.0) -> tuple[float, float]:
+    """The exact lowest and highest z of ``shape``: its distances (BRepExtrema) from horizontal
+    square faces ``reach`` below and above ``near``."""
+    from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeFace
+    from OCP.BRepExtrema import BRepExtrema_DistShapeShape
+    from OCP.gp import gp_Dir, gp_Pln, gp_Pnt
+
+    def gap(z: float) -> float:
+        face = BRepBuilderAPI_MakeFace(gp_Pln(gp_Pnt(0, 0, z), gp_Dir(0, 0, 1)), -1e4, 1e4, -1e4, 1e4).Face()
+        dist = BRepExtrema_DistShapeShape(shape, face)
+        assert dist.IsDone()
+        return dist.Value()
+
+    return near - reach + gap(near - reach), near + reach - gap(near + reach)
 
 
 # Turned cases with a crossing beside an edge whose curve on the face lies off the edge (the node's
