@@ -69,6 +69,8 @@ TRIM_TOL_MM = 1e-6
 # C0 lines of a face this close to its (u, v) box's sides are its edges' business (relative to the box)
 KINK_MARGIN_REL = 1e-9
 KINK_MIN_SPACING_REL = 1e-9  # a kink this close to a run's end (relative to its length) is that end
+# rounds of the check of segments with an inflection inside (each: those the last round split)
+MAX_INFLECTION_ROUNDS = 4
 MAX_REFINE_ROUNDS = 40  # halving a segment 24 times takes 1 m down to 60 nm: still failing means broken
 # A sampled ring turning by more than this (cosine) at a vertex inside a face is checked for an
 # excursion of the curve its segments skip (``_excursion_runs``); a correct sampling turns that much
@@ -148,6 +150,7 @@ class SamplingStats:
     reordered_crossings: int = 0  # crossings put at the section point nearest them (see _solve_crossing)
     kink_corners: int = 0  # corners placed where a section crosses a C0 line inside a face
     quarter_checks: int = 0  # segments also checked at their quarter points (see _quarter_sags)
+    inflection_checks: int = 0  # segments checked again for an inflection inside (_inflected_segments)
     unchecked_segments: int = 0  # segments whose midpoint could not be placed (see _midpoints_off_the_path)
     off_trim_crossings: int = 0  # crossings whose root lay beyond their face's trim (see _drop_off_trim)
     max_gap_mm: float = 0.0
@@ -1443,96 +1446,131 @@ class RingSampler:
         pending = (ri[pair], s_[pair], s_[pair + 1], xyz[pair], xyz[pair + 1])
 
         L, e = self.seg_len, self.chord
-        worst = ""
-        for _ in range(MAX_REFINE_ROUNDS):
-            ri, sa, sb, pa, pb = pending
-            if not len(ri):
-                break
-            mid, mid_ok, _ = solve(ri, 0.5 * (sa + sb))
-            length = np.linalg.norm(pb - pa, axis=1)
-            self._midpoints_off_the_path(
-                run_face[ri], run_z[ri], run_step[ri], mid, mid_ok, pa, pb, length, run_traced[ri]
-            )
-            sag = np.where(mid_ok, point_segment_distance(np.nan_to_num(mid), pa, pb), 0.0)
-            self._quarter_sags(solve, sag, mid, mid_ok, length, pending, run_traced[ri])
-            bad = ((length > L) | (sag > CHORD_FILL * e)) & (length > 1e-9)
-            # No exact point halfway: the plane is tangent to the surface along this segment (the
-            # section degenerates to a line or a point there). Keep the segment, count it.
-            tangent = bad & ~mid_ok
-            if tangent.any():
-                self.stats.tangent_segments += int(tangent.sum())
-                bad &= ~tangent
-            # A segment whose seed interval has collapsed but which stays long bridges a gap in the
-            # B-rep itself: near a plane tangent to a nearly horizontal edge, the face's level set and
-            # the edge curve (equal only to the file's tolerance) cross the plane apart. No exact point
-            # lies between; keep the segment and report it.
-            gap = bad & ((sb - sa) < GAP_SPAN_REL * np.maximum(lengths[ri], 1.0))
-            if gap.any():
-                self._record_gaps(gap, length, pa, pb, run_z[ri], run_face[ri])
-                bad &= ~gap
-            if not bad.any():
-                break
-            q = int(np.argmax(np.where(bad, sag, -1.0)))
-            worst = (
-                f" (face {run_face[ri[q]] + 1}: sag {sag[q]:.3g} mm over {length[q]:.3g} mm, "
-                f"s {sa[q]:.6g}..{sb[q]:.6g} of {lengths[ri[q]]:.6g})"
-            )
-            b_idx = np.flatnonzero(bad)
-            m = np.maximum.reduce(
-                [
-                    np.full(len(b_idx), 2),
-                    np.ceil(length[b_idx] / (L * SEGMENT_FILL)).astype(int),
-                    np.ceil(np.sqrt(sag[b_idx] / e) * 1.05).astype(int),
-                ]
-            )
-            m = np.minimum(m, MAX_SUBDIVISION)
-            # m - 1 new points at equal steps of s inside each bad segment
-            seg = np.repeat(np.arange(len(b_idx)), m - 1)
-            k = np.arange(len(seg)) - np.repeat(np.cumsum(m - 1) - (m - 1), m - 1) + 1
-            bq = b_idx[seg]
-            ns = sa[bq] + (sb[bq] - sa[bq]) * k / m[seg]
-            new_xyz, new_ok, new_uv = solve(ri[bq], ns)
-            # A new point must fall inside its segment, and not onto an end (the k-th of m - 1 is
-            # expected near k / m): one the seed path put elsewhere (a (u, v) path through a pole of
-            # the face's parametrisation, or round a bend it does not follow) is solved again from
-            # the chord's point projected on the face.
-            t_new = _chord_position(np.nan_to_num(new_xyz), pa[bq], pb[bq])
-            margin = 0.25 / m[seg]
-            new_ok &= ((t_new > margin) & (t_new < 1.0 - margin)) | run_traced[ri[bq]]
-            if not new_ok.all():
-                miss = np.flatnonzero(~new_ok)
-                frac = (k / m[seg])[miss]
-                guess = pa[bq][miss] + frac[:, None] * (pb[bq][miss] - pa[bq][miss])
-                xyz_m, ok_m, uv_m = self._solve_from_chord(
-                    run_face[ri[bq]][miss],
-                    run_z[ri[bq]][miss],
-                    run_step[ri[bq]][miss],
-                    guess,
-                    pa[bq][miss],
-                    pb[bq][miss],
+
+        def refine(pending: tuple, forced: bool = False) -> bool:
+            # each round: the pending segments checked, the bad ones split into the next round's
+            # (``forced``: checked at their quarter points too, wherever their midpoints lie)
+            worst = ""
+            split = False
+            for _ in range(MAX_REFINE_ROUNDS):
+                ri, sa, sb, pa, pb = pending
+                if not len(ri):
+                    return split
+                mid, mid_ok, _ = solve(ri, 0.5 * (sa + sb))
+                length = np.linalg.norm(pb - pa, axis=1)
+                self._midpoints_off_the_path(
+                    run_face[ri], run_z[ri], run_step[ri], mid, mid_ok, pa, pb, length, run_traced[ri]
                 )
-                new_xyz[miss[ok_m]], new_uv[miss[ok_m]], new_ok[miss[ok_m]] = xyz_m[ok_m], uv_m[ok_m], True
-            run_all.append(ri[bq][new_ok])
-            s_all.append(ns[new_ok])
-            xyz_all.append(new_xyz[new_ok])
-            uv_all.append(new_uv[new_ok])
-            vid_all.append(np.full(int(new_ok.sum()), -1, dtype=np.int64))
-            # the chains start, new points, end of each bad segment; consecutive members are the
-            # segments of the next round
-            nb = len(b_idx)
-            c_grp = np.concatenate([np.arange(nb), seg[new_ok], np.arange(nb)])
-            c_key = np.concatenate([np.zeros(nb), k[new_ok], m.astype(np.float64)])
-            c_s = np.concatenate([sa[b_idx], ns[new_ok], sb[b_idx]])
-            c_xyz = np.concatenate([pa[b_idx], new_xyz[new_ok], pb[b_idx]])
-            order = np.lexsort((c_key, c_grp))
-            c_grp, c_s, c_xyz = c_grp[order], c_s[order], c_xyz[order]
-            # no new point could be placed: keep it as a tangent segment
-            self.stats.tangent_segments += int((np.bincount(seg[new_ok], minlength=nb) == 0).sum())
-            pair = np.flatnonzero(c_grp[1:] == c_grp[:-1])
-            pair = pair[np.bincount(seg[new_ok], minlength=nb)[c_grp[pair]] > 0]
-            pending = (ri[b_idx][c_grp[pair]], c_s[pair], c_s[pair + 1], c_xyz[pair], c_xyz[pair + 1])
-        else:
-            raise TessellationError(f"section curves cannot meet the chord budget{worst}")
+                sag = np.where(mid_ok, point_segment_distance(np.nan_to_num(mid), pa, pb), 0.0)
+                self._quarter_sags(
+                    solve, sag, mid, mid_ok, length, pending, run_traced[ri], everywhere=forced
+                )
+                bad = ((length > L) | (sag > CHORD_FILL * e)) & (length > 1e-9)
+                forced = False  # (the parts of a segment checked everywhere: as any other)
+                # No exact point halfway: the plane is tangent to the surface along this segment (the
+                # section degenerates to a line or a point there). Keep the segment, count it.
+                tangent = bad & ~mid_ok
+                if tangent.any():
+                    self.stats.tangent_segments += int(tangent.sum())
+                    bad &= ~tangent
+                # A segment whose seed interval has collapsed but which stays long bridges a gap in the
+                # B-rep itself: near a plane tangent to a nearly horizontal edge, the face's level set and
+                # the edge curve (equal only to the file's tolerance) cross the plane apart. No exact point
+                # lies between; keep the segment and report it.
+                gap = bad & ((sb - sa) < GAP_SPAN_REL * np.maximum(lengths[ri], 1.0))
+                if gap.any():
+                    self._record_gaps(gap, length, pa, pb, run_z[ri], run_face[ri])
+                    bad &= ~gap
+                if not bad.any():
+                    return split
+                split = True
+                q = int(np.argmax(np.where(bad, sag, -1.0)))
+                worst = (
+                    f" (face {run_face[ri[q]] + 1}: sag {sag[q]:.3g} mm over {length[q]:.3g} mm, "
+                    f"s {sa[q]:.6g}..{sb[q]:.6g} of {lengths[ri[q]]:.6g})"
+                )
+                b_idx = np.flatnonzero(bad)
+                m = np.maximum.reduce(
+                    [
+                        np.full(len(b_idx), 2),
+                        np.ceil(length[b_idx] / (L * SEGMENT_FILL)).astype(int),
+                        np.ceil(np.sqrt(sag[b_idx] / e) * 1.05).astype(int),
+                    ]
+                )
+                m = np.minimum(m, MAX_SUBDIVISION)
+                # m - 1 new points at equal steps of s inside each bad segment
+                seg = np.repeat(np.arange(len(b_idx)), m - 1)
+                k = np.arange(len(seg)) - np.repeat(np.cumsum(m - 1) - (m - 1), m - 1) + 1
+                bq = b_idx[seg]
+                ns = sa[bq] + (sb[bq] - sa[bq]) * k / m[seg]
+                new_xyz, new_ok, new_uv = solve(ri[bq], ns)
+                # A new point must fall inside its segment, and not onto an end (the k-th of m - 1 is
+                # expected near k / m): one the seed path put elsewhere (a (u, v) path through a pole of
+                # the face's parametrisation, or round a bend it does not follow) is solved again from
+                # the chord's point projected on the face.
+                t_new = _chord_position(np.nan_to_num(new_xyz), pa[bq], pb[bq])
+                margin = 0.25 / m[seg]
+                new_ok &= ((t_new > margin) & (t_new < 1.0 - margin)) | run_traced[ri[bq]]
+                if not new_ok.all():
+                    miss = np.flatnonzero(~new_ok)
+                    frac = (k / m[seg])[miss]
+                    guess = pa[bq][miss] + frac[:, None] * (pb[bq][miss] - pa[bq][miss])
+                    xyz_m, ok_m, uv_m = self._solve_from_chord(
+                        run_face[ri[bq]][miss],
+                        run_z[ri[bq]][miss],
+                        run_step[ri[bq]][miss],
+                        guess,
+                        pa[bq][miss],
+                        pb[bq][miss],
+                    )
+                    new_xyz[miss[ok_m]], new_uv[miss[ok_m]], new_ok[miss[ok_m]] = (
+                        xyz_m[ok_m],
+                        uv_m[ok_m],
+                        True,
+                    )
+                run_all.append(ri[bq][new_ok])
+                s_all.append(ns[new_ok])
+                xyz_all.append(new_xyz[new_ok])
+                uv_all.append(new_uv[new_ok])
+                vid_all.append(np.full(int(new_ok.sum()), -1, dtype=np.int64))
+                # the chains start, new points, end of each bad segment; consecutive members are the
+                # segments of the next round
+                nb = len(b_idx)
+                c_grp = np.concatenate([np.arange(nb), seg[new_ok], np.arange(nb)])
+                c_key = np.concatenate([np.zeros(nb), k[new_ok], m.astype(np.float64)])
+                c_s = np.concatenate([sa[b_idx], ns[new_ok], sb[b_idx]])
+                c_xyz = np.concatenate([pa[b_idx], new_xyz[new_ok], pb[b_idx]])
+                order = np.lexsort((c_key, c_grp))
+                c_grp, c_s, c_xyz = c_grp[order], c_s[order], c_xyz[order]
+                # no new point could be placed: keep it as a tangent segment
+                self.stats.tangent_segments += int((np.bincount(seg[new_ok], minlength=nb) == 0).sum())
+                pair = np.flatnonzero(c_grp[1:] == c_grp[:-1])
+                pair = pair[np.bincount(seg[new_ok], minlength=nb)[c_grp[pair]] > 0]
+                pending = (ri[b_idx][c_grp[pair]], c_s[pair], c_s[pair + 1], c_xyz[pair], c_xyz[pair + 1])
+            else:
+                raise TessellationError(f"section curves cannot meet the chord budget{worst}")
+
+        refine(pending)
+        # A segment whose curve turns one way near one end and the other way near the other has an
+        # inflection inside, where its midpoint can lie on the chord with the curve off it on either
+        # side: checked again at its quarter points (and split where it fails), until none is left.
+        # After the first round only segments at or next to the points it added are looked at.
+        checked = 0  # points before this index: their segments checked
+        for _ in range(MAX_INFLECTION_ROUNDS):
+            ri, s_, xyz = np.concatenate(run_all), np.concatenate(s_all), np.concatenate(xyz_all)
+            order = np.lexsort((s_, ri))
+            inflected = _inflected_segments(ri[order], xyz[order])
+            if checked:
+                new = order >= checked
+                near = new | np.roll(new, 1) | np.roll(new, -1)
+                inflected = inflected[near[inflected] | near[inflected + 1]]
+            if not len(inflected):
+                break
+            a, b = order[inflected], order[inflected + 1]
+            self.stats.inflection_checks += len(inflected)
+            checked = len(s_)
+            if not refine((ri[a], s_[a], s_[b], xyz[a], xyz[b]), forced=True):
+                break
 
         ri, s_ = np.concatenate(run_all), np.concatenate(s_all)
         xyz, vid, uv = np.concatenate(xyz_all), np.concatenate(vid_all), np.concatenate(uv_all)
@@ -1627,7 +1665,7 @@ class RingSampler:
         t = _chord_position(np.nan_to_num(p), pa, pb)
         return p, ok & (t > 0.0) & (t < 1.0), out_uv
 
-    def _quarter_sags(self, solve, sag, mid, mid_ok, length, pending, traced) -> None:
+    def _quarter_sags(self, solve, sag, mid, mid_ok, length, pending, traced, *, everywhere=False) -> None:
         """Raise ``sag`` (in place) to the curve's distance from the chord at the quarter points of
         the segments where the midpoint alone may miss the largest one.
 
@@ -1647,7 +1685,8 @@ class RingSampler:
         e = self.chord
         t = _chord_position(np.nan_to_num(mid), pa, pb)
         check = mid_ok & (sag <= e) & (length <= self.seg_len) & (length > 1e-9)
-        check &= (sag > 0.25 * e) | (np.abs(t - 0.5) > 0.25)
+        if not everywhere:  # (else: segments with an inflection, ``_inflected_segments``)
+            check &= (sag > 0.25 * e) | (np.abs(t - 0.5) > 0.25)
         ci = np.flatnonzero(check)
         if not len(ci):
             return
@@ -1916,6 +1955,31 @@ def _splice(ring: list[int], pieces: list[tuple[int, int, list[int]]]) -> list[i
             k = (k + 1) % n
         if k == start:
             return out
+
+
+def _inflected_segments(ri: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+    """The segments (index of their first point) of runs ``ri`` (points sorted by run and arc
+    length, at ``xyz``) whose polyline turns one way at one end and the other way at the other: the
+    curve has an inflection inside, where the midpoint can lie on the chord while the curve is off it
+    on either side (r103ec turned (5.4, -134.3, 135.1), the report's reference at z = 12.1: a 1.67 mm
+    segment with its midpoint on the chord and the curve 5 um off it at a quarter and three quarters
+    of the way). Only segments with both neighbours in their run; turns of under 1e-9 rad count as
+    none (a straight line's points in a row)."""
+    if len(ri) < 4:
+        return np.empty(0, dtype=np.int64)
+    d = np.diff(xyz[:, :2], axis=0)
+    same = ri[1:] == ri[:-1]  # segment k: points k, k + 1 of one run
+    length = np.hypot(d[:, 0], d[:, 1])
+    cross = d[:-1, 0] * d[1:, 1] - d[:-1, 1] * d[1:, 0]  # the turn at point k + 1
+    turn = np.where(np.abs(cross) > 1e-9 * length[:-1] * length[1:], np.sign(cross), 0.0)
+    turn = np.where(same[:-1] & same[1:], turn, 0.0)
+    # segment k: the turns at its points k and k + 1 (none at a run's ends)
+    before = np.concatenate([[0.0], turn])  # at point k
+    after = np.concatenate([turn, [0.0]])  # at point k + 1
+    first = ~np.concatenate([[False], same[:-1]])  # segment k starts its run
+    last = ~np.concatenate([same[1:], [False]])  # segment k ends it
+    flip = same & (length > 1e-9) & ((before * after < 0) | first | last)
+    return np.flatnonzero(flip)
 
 
 def _gap_place(z: float, face: int, pa: np.ndarray, pb: np.ndarray) -> str:

@@ -713,3 +713,55 @@ def test_a_pinned_segment_whose_points_come_out_of_order_is_traced_again_whole(m
         if abs(z - 4.1) > 1e-9:  # (the step's flat face lies on plane 4.1)
             assert length[j] == pytest.approx(80.0 if z < 4.1 else 40.0, abs=1e-6), (j, z)
     assert mesh.stats["excursions"] == len(scrambled)
+
+
+def _step_prism(tmp_path, height: float, width: float, half: float):
+    """A prism 3 mm tall whose side wall holds a smooth step: a B-spline through
+    y = height * tanh(x / width) for x from -half to half (one face), closed by straight walls
+    below it. Returns the STEP path and the spline's (x, y) at 20,001 points."""
+    import build123d as bd
+
+    from tests.conftest import write_step
+
+    pts = [(float(x), float(height * math.tanh(x / width))) for x in np.linspace(-half, half, 81)]
+    with bd.BuildSketch() as sketch:
+        with bd.BuildLine():
+            bd.Spline(*pts)
+            bd.Polyline(pts[-1], (half, -10.0), (-half, -10.0), pts[0])
+        bd.make_face()
+    shape = bd.extrude(sketch.sketch, 3.0)
+    (edge,) = [e for e in shape.edges() if e.geom_type == bd.GeomType.BSPLINE and abs(e.center().Z) < 1e-9]
+    curve = np.array([tuple(edge.position_at(t))[:2] for t in np.linspace(0.0, 1.0, 20_001)])
+    return write_step(shape, tmp_path / "step_prism.step", nurbs=False), curve
+
+
+def test_a_segment_across_an_inflection_is_checked_beyond_its_midpoint(tmp_path):
+    """A smooth step 0.02 mm high over ~0.3 mm, in the middle of a 2 mm run sampled in three
+    segments: the middle one spans both bends, its midpoint on the chord (the inflection) while
+    the curve lies 0.0055 mm off it on either side, and the midpoint test passed it against a
+    0.002 mm budget (its quarter points were only looked at where the midpoint was off-centre or
+    far from the chord: a rule that holds for a convex arc). A segment whose polyline turns
+    one way at one end and the other way at the other is now checked at its quarter points too:
+    the exact curve lies within the budget of the ring everywhere."""
+    path, curve = _step_prism(tmp_path, 0.01, 0.08, 1.0)
+    params = SliceParams(layer_height=1.0, segment_length=0.8, chord_error=0.002)
+    mesh = slice_step(path, params)
+    assert mesh.stats["inflection_checks"] > 0
+    z = mesh.planes.section_z[1]
+    x, y = mesh.vertices[:, 0], mesh.vertices[:, 1]
+    corner = np.abs(y - np.sign(x) * 0.01 * math.tanh(1.0 / 0.08)) < 1e-6
+    # the plane's ring along the step, its two corners (not the walls below them)
+    on = (mesh.vertex_plane == 1) & (y > -0.5) & ((np.abs(x) < 1.0 - 1e-6) | corner)
+    ring = mesh.vertices[on]
+    assert np.all(np.abs(mesh.vertices[on, 2] - z) < 1e-9)
+    order = np.argsort(ring[:, 0])
+    polyline = ring[order, :2]
+    assert polyline[0, 0] == pytest.approx(-1.0, abs=1e-6) and polyline[-1, 0] == pytest.approx(1.0, abs=1e-6)
+    a, b = polyline[:-1], polyline[1:]
+    ab = b - a
+    dist = np.full(len(curve), np.inf)
+    for k in range(len(a)):  # the curve's distance from the polyline, exactly (segment by segment)
+        t = np.clip(((curve - a[k]) @ ab[k]) / (ab[k] @ ab[k]), 0.0, 1.0)
+        dist = np.minimum(dist, np.linalg.norm(a[k] + t[:, None] * ab[k] - curve, axis=1))
+    assert dist.max() <= params.chord_error, dist.max()
+    assert np.hypot(*ab.T).max() <= params.segment_length + 1e-9

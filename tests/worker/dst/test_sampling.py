@@ -10,7 +10,7 @@ from OCP.GeomAbs import GeomAbs_Cone, GeomAbs_Plane
 
 from worker.dst import constants as C
 from worker.dst.pipeline import bbox_diagonal, topo_deflection
-from worker.dst.sampling import RingSampler, VertexPool
+from worker.dst.sampling import RingSampler, VertexPool, _inflected_segments
 from worker.dst.sections import cut_topology
 from worker.dst.step_io import read_step
 from worker.dst.topomesh import build_topomesh
@@ -483,3 +483,18 @@ def test_a_point_between_two_others_along_the_section_is_told_from_one_beyond_th
     assert not between(1.2, 0.9, 0.2)  # the long way round is beyond the trace's reach
     assert between(1.2, 0.9, 0.2, reach=12.0)
     assert not between(0.5, 0.9, 0.2, reach=12.0)
+
+
+def test_segments_with_an_inflection_inside_are_told_from_those_of_a_convex_arc():
+    """``_inflected_segments``: on a convex arc only each run's first and last segments (whose
+    turn beyond the run's end is unknown); on an S-curve also the segment across the inflection;
+    on a straight line (turns of rounding noise) the ends only."""
+    t = np.linspace(0.0, 1.0, 9)
+    arc = np.column_stack([np.cos(t), np.sin(t), np.zeros_like(t)])
+    line = np.column_stack([t, 1e-17 * np.sin(40.0 * t), np.zeros_like(t)])
+    x = np.linspace(-1.0, 1.0, 8)  # no point on the inflection at x = 0: segment 3 spans it
+    s_curve = np.column_stack([x, np.tanh(3.0 * x), np.zeros_like(x)])
+    xyz = np.concatenate([arc, line, s_curve])
+    ri = np.repeat([0, 1, 2], [9, 9, 8])
+    got = _inflected_segments(ri, xyz).tolist()
+    assert got == [0, 7, 9, 16, 18, 18 + 3, 18 + 6]
