@@ -1556,10 +1556,11 @@ class RingSampler:
         # side: checked again at its quarter points (and split where it fails), until none is left.
         # After the first round only segments at or next to the points it added are looked at.
         checked = 0  # points before this index: their segments checked
+        after = _run_successors(first, last)
         for _ in range(MAX_INFLECTION_ROUNDS):
             ri, s_, xyz = np.concatenate(run_all), np.concatenate(s_all), np.concatenate(xyz_all)
             order = np.lexsort((s_, ri))
-            inflected = _inflected_segments(ri[order], xyz[order])
+            inflected = _inflected_segments(ri[order], xyz[order], after)
             if checked:
                 new = order >= checked
                 near = new | np.roll(new, 1) | np.roll(new, -1)
@@ -1957,29 +1958,60 @@ def _splice(ring: list[int], pieces: list[tuple[int, int, list[int]]]) -> list[i
             return out
 
 
-def _inflected_segments(ri: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+def _run_successors(first: np.ndarray, last: np.ndarray) -> np.ndarray:
+    """For each run (first and last vertex ids), the run that starts where it ends (the next piece
+    of its loop past the corner between them; itself for a loop that is one run), or -1 where no
+    run or more than one does (a vertex two loops share)."""
+    starts: dict[int, list[int]] = {}
+    for q, v in enumerate(first.tolist()):
+        starts.setdefault(v, []).append(q)
+    out = np.full(len(first), -1, dtype=np.int64)
+    for r, v in enumerate(last.tolist()):
+        if len(qs := starts.get(v, [])) == 1:
+            out[r] = qs[0]
+    return out
+
+
+def _inflected_segments(ri: np.ndarray, xyz: np.ndarray, after: np.ndarray | None = None) -> np.ndarray:
     """The segments (index of their first point) of runs ``ri`` (points sorted by run and arc
     length, at ``xyz``) whose polyline turns one way at one end and the other way at the other: the
     curve has an inflection inside, where the midpoint can lie on the chord while the curve is off it
     on either side (r103ec turned (5.4, -134.3, 135.1), the report's reference at z = 12.1: a 1.67 mm
     segment with its midpoint on the chord and the curve 5 um off it at a quarter and three quarters
-    of the way). Only segments with both neighbours in their run; turns of under 1e-9 rad count as
-    none (a straight line's points in a row)."""
-    if len(ri) < 4:
+    of the way). At a run's end the turn is taken with the first segment of the run ``after`` it
+    (``_run_successors``; runs numbered 0 .. n - 1, each with two points or more); a segment ending
+    where that is not known counts as inflected. Turns of under 1e-9 rad count as none (a straight
+    line's points in a row)."""
+    if len(ri) < 2:
         return np.empty(0, dtype=np.int64)
     d = np.diff(xyz[:, :2], axis=0)
     same = ri[1:] == ri[:-1]  # segment k: points k, k + 1 of one run
     length = np.hypot(d[:, 0], d[:, 1])
-    cross = d[:-1, 0] * d[1:, 1] - d[:-1, 1] * d[1:, 0]  # the turn at point k + 1
-    turn = np.where(np.abs(cross) > 1e-9 * length[:-1] * length[1:], np.sign(cross), 0.0)
-    turn = np.where(same[:-1] & same[1:], turn, 0.0)
-    # segment k: the turns at its points k and k + 1 (none at a run's ends)
-    before = np.concatenate([[0.0], turn])  # at point k
-    after = np.concatenate([turn, [0.0]])  # at point k + 1
-    first = ~np.concatenate([[False], same[:-1]])  # segment k starts its run
-    last = ~np.concatenate([same[1:], [False]])  # segment k ends it
-    flip = same & (length > 1e-9) & ((before * after < 0) | first | last)
-    return np.flatnonzero(flip)
+
+    def sign_of_turn(d0: np.ndarray, d1: np.ndarray) -> np.ndarray:
+        cross = d0[..., 0] * d1[..., 1] - d0[..., 1] * d1[..., 0]
+        size = np.hypot(d0[..., 0], d0[..., 1]) * np.hypot(d1[..., 0], d1[..., 1])
+        return np.where(np.abs(cross) > 1e-9 * size, np.sign(cross), 0.0)
+
+    n = len(ri)
+    turn = np.zeros(n)  # at each point
+    known = np.zeros(n, dtype=bool)
+    inner = np.concatenate([[False], same[:-1] & same[1:], [False]])
+    turn[1:-1] = sign_of_turn(d[:-1], d[1:])
+    turn[~inner] = 0.0
+    known[inner] = True
+    if after is not None and len(after):
+        bounds = np.searchsorted(ri, np.arange(len(after) + 1))
+        linked = np.flatnonzero(after >= 0)
+        end, start = bounds[linked + 1] - 1, bounds[after[linked]]  # the same vertex, in two runs
+        ok = (end - 1 >= bounds[linked]) & (start + 1 < bounds[after[linked] + 1])
+        end, start = end[ok], start[ok]
+        across = sign_of_turn(xyz[end, :2] - xyz[end - 1, :2], xyz[start + 1, :2] - xyz[start, :2])
+        turn[end], turn[start] = across, across
+        known[end], known[start] = True, True
+    k = np.flatnonzero(same & (length > 1e-9))
+    flip = ~known[k] | ~known[k + 1] | (turn[k] * turn[k + 1] < 0)
+    return k[flip]
 
 
 def _gap_place(z: float, face: int, pa: np.ndarray, pb: np.ndarray) -> str:

@@ -498,3 +498,20 @@ def test_segments_with_an_inflection_inside_are_told_from_those_of_a_convex_arc(
     ri = np.repeat([0, 1, 2], [9, 9, 8])
     got = _inflected_segments(ri, xyz).tolist()
     assert got == [0, 7, 9, 16, 18, 18 + 3, 18 + 6]
+
+
+def test_a_runs_end_segments_are_judged_by_the_turn_across_its_corner_where_the_next_run_is_known():
+    """``_inflected_segments`` with each run's successor: a circle sampled as one run that ends
+    where it starts has no segment to check; a circle in two runs joined both ways neither; with
+    one of the links unknown, the two segments at that corner are checked."""
+    from worker.dst.sampling import _run_successors
+
+    a = np.linspace(0.0, 2.0 * math.pi, 13)
+    circle = np.column_stack([np.cos(a), np.sin(a), np.zeros_like(a)])
+    assert len(_inflected_segments(np.zeros(13, dtype=np.int64), circle, np.array([0]))) == 0
+    halves = np.concatenate([circle[:7], circle[6:]])  # run 0: points 0..6, run 1: 6..12 (= 0)
+    ri = np.repeat([0, 1], 7)
+    first, last = np.array([10, 16]), np.array([16, 10])  # vertex ids of the runs' ends
+    np.testing.assert_array_equal(_run_successors(first, last), [1, 0])
+    assert len(_inflected_segments(ri, halves, _run_successors(first, last))) == 0
+    assert _inflected_segments(ri, halves, np.array([1, -1])).tolist() == [0, 12]
