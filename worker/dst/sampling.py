@@ -1993,13 +1993,9 @@ def _inflected_segments(ri: np.ndarray, xyz: np.ndarray, after: np.ndarray | Non
         size = np.hypot(d0[..., 0], d0[..., 1]) * np.hypot(d1[..., 0], d1[..., 1])
         return np.where(np.abs(cross) > 1e-9 * size, np.sign(cross), 0.0)
 
-    n = len(ri)
-    turn = np.zeros(n)  # at each point
-    known = np.zeros(n, dtype=bool)
-    inner = np.concatenate([[False], same[:-1] & same[1:], [False]])
+    turn = np.zeros(len(ri))  # at each point, where ``known``
     turn[1:-1] = sign_of_turn(d[:-1], d[1:])
-    turn[~inner] = 0.0
-    known[inner] = True
+    known = np.concatenate([[False], same[:-1] & same[1:], [False]])  # points inside their run
     if after is not None and len(after):
         bounds = np.searchsorted(ri, np.arange(len(after) + 1))
         linked = np.flatnonzero(after >= 0)
