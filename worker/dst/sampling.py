@@ -1849,7 +1849,15 @@ def _parabola_peak(t: np.ndarray, f: np.ndarray, ok: np.ndarray) -> np.ndarray:
     """Row-wise estimate of the largest distance of a segment's curve from its chord, from three
     samples (t, f) (any order of t): the peak of the parabola through them where it opens downwards
     and peaks between them (capped at 1.5 times the largest sample: nearly collinear samples would
-    extrapolate wildly), and beyond the outer samples the bound of a concave distance. 0 if none."""
+    extrapolate wildly), beyond the outer samples the bound of a concave distance, and the peak of
+    the quartic through the samples and the chord's ends (same cap). 0 if none.
+
+    The quartic (zero at t = 0 and 1, where the curve meets its chord) follows a bend off-centre
+    that the parabola through the samples alone flattens: boxed_sphere turned (16.7, -95.9, 65.9)
+    at z = 8.9, samples 0.0121, 0.0239, 0.0143 at t = 0.30, 0.61, 0.91 of a segment ending in a
+    corner, whose curve peaks at 0.0251 at t = 0.72 (a tighter bend towards the corner): the
+    parabola says 0.0239, the quartic 0.0252. (At z = 10.9 a 0.055 mm segment across a small lobe,
+    sampled at 0.0241, was 0.0257 from its curve.)"""
     order = np.argsort(t, axis=1)
     t, f = np.take_along_axis(t, order, axis=1), np.take_along_axis(f, order, axis=1)
     (t1, t2, t3), (f1, f2, f3) = t.T, f.T
@@ -1863,10 +1871,27 @@ def _parabola_peak(t: np.ndarray, f: np.ndarray, ok: np.ndarray) -> np.ndarray:
         # rises there after three samples on the straight part
         start = np.where(f1 > f2, f1 + (f1 - f2) * np.clip(t1, 0.0, 1.0) / (t2 - t1), 0.0)
         end = np.where(f3 > f2, f3 + (f3 - f2) * np.clip(1.0 - t3, 0.0, 1.0) / (t3 - t2), 0.0)
+        # the quartic t (1 - t) g(t), g the parabola through g_i = f_i / (t_i (1 - t_i)), on a grid
+        g = f / (t * (1.0 - t))
+        x = _QUARTIC_GRID[None, :]
+        lag = [
+            (x - t2[:, None]) * (x - t3[:, None]) / ((t1 - t2) * (t1 - t3))[:, None],
+            (x - t1[:, None]) * (x - t3[:, None]) / ((t2 - t1) * (t2 - t3))[:, None],
+            (x - t1[:, None]) * (x - t2[:, None]) / ((t3 - t1) * (t3 - t2))[:, None],
+        ]
+        quartic = (x * (1.0 - x) * sum(g[:, i, None] * lag[i] for i in range(3))).max(axis=1)
     spaced = (t2 - t1 > 1e-9) & (t3 - t2 > 1e-9)
     good = ok & (a < 0) & (ts > t1) & (ts < t3) & spaced & np.isfinite(peak)
-    out = np.where(good, np.minimum(peak, 1.5 * f.max(axis=1)), 0.0)
+    cap = 1.5 * f.max(axis=1)
+    out = np.where(good, np.minimum(peak, cap), 0.0)
+    inside = ok & spaced & (t1 > _QUARTIC_END) & (t3 < 1.0 - _QUARTIC_END) & np.isfinite(quartic)
+    out = np.maximum(out, np.where(inside, np.minimum(quartic, cap), 0.0))
     return np.maximum(out, np.where(ok & spaced, np.maximum(start, end), 0.0))
+
+
+# where ``_parabola_peak``'s quartic is evaluated; samples this close to an end give it no shape
+_QUARTIC_GRID = np.linspace(0.0, 1.0, 65)
+_QUARTIC_END = 0.02
 
 
 def _chord_position(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -455,6 +455,41 @@ def test_report_reference_follows_the_curve_where_its_crossings_come_out_of_orde
 
 
 @pytest.mark.slow
+def test_off_centre_bends_are_within_budget_and_a_loose_files_offsets_are_put_down_to_it():
+    """boxed_sphere turned to (16.7, -95.9, 65.9). Two segments' curves peaked off their middles
+    (z = 8.9: a bend tightening towards the segment's end corner; z = 10.9: across a small lobe),
+    where the parabola through the sampled distances is low: exact points of the curve lay 0.0251
+    and 0.0257 mm from the ring, over the 0.025 budget (the report's chord_dev, within its 1 um
+    resolution, did not show it as a failure). Every exact point of the report's reference is now
+    within the budget of the ring (float32 slack only). And at five planes the ring's vertices lie
+    on a face 2-6 um from the reference, within that face's 0.059 mm edge tolerance: the report
+    says the file is exact only to its tolerances there, and names no gap of its reference."""
+    from worker.dst.deviation import SegmentSet, cut_mesh
+    from worker.dst.report import MeshInput, _exact_reference, _on_bed
+
+    path = CORPUS / "assembly" / "boxed_sphere.step"
+    if not path.is_file():
+        pytest.skip(f"the shared STEP corpus is not beside this checkout ({CORPUS})")
+    params = _params(path).model_copy(update=dict(zip(ROTATION_FIELDS, (16.7, -95.9, 65.9), strict=True)))
+    mesh = slice_step(path, params)
+    heights = mesh.planes.section_z
+    ref = _exact_reference(mesh.part, params, heights, helper=False).sections
+    v, tr = _on_bed(MeshInput("dst", "dst", mesh.vertices32, mesh.triangles, None, ""))  # the STL's
+    cut = cut_mesh(v, tr, heights)
+    ring = SegmentSet(cut.seg, cut.seg_plane)
+    pts = np.concatenate([p for ls in ref.loops for p in ls])
+    plane = np.concatenate([np.full(len(p), j) for j, ls in enumerate(ref.loops) for p in ls])
+    d = ring.distance(pts, plane)
+    worst = int(np.argmax(d))
+    assert d[worst] <= params.chord_error + 1e-6, (mesh.planes.z[plane[worst]], d[worst])
+
+    report = build_report(mesh.part, params, file_name=path.name, dst=mesh, baselines=())
+    assert not [w for w in report.warnings if "reference misses part of the section" in w], report.warnings
+    (loose,) = [w for w in report.warnings if "exact only to its tolerances" in w]
+    assert "at 5 plane(s) (7, 8, 12, 43, 47;" in loose, loose
+
+
+@pytest.mark.slow
 def test_report_reference_keeps_a_tongue_tip_its_trace_between_suspects_would_lose():
     """boxed_sphere turned to (-11.5, -70.9, -79.8): at four planes the reference (sampled to 1 um,
     where the DST build's 25 um accepts longer segments) passed a tongue's tip several times over

@@ -515,3 +515,34 @@ def test_a_runs_end_segments_are_judged_by_the_turn_across_its_corner_where_the_
     np.testing.assert_array_equal(_run_successors(first, last), [1, 0])
     assert len(_inflected_segments(ri, halves, _run_successors(first, last))) == 0
     assert _inflected_segments(ri, halves, np.array([1, -1])).tolist() == [0, 12]
+
+
+def test_a_segments_largest_distance_is_estimated_where_its_bend_is_off_centre():
+    """``_parabola_peak`` from three samples of a segment's distance from its chord. A bend off
+    centre (the curve's distance t (1 - t)(1 + 3 t), peak 0.674 at t = 0.62, as a fillet running
+    into the segment's end corner): the parabola through the samples at 1/4, 1/2, 3/4 peaks at
+    0.657, 2.6% low (boxed_sphere turned (16.7, -95.9, 65.9) had a segment 0.0251 mm from its curve,
+    sampled at 0.0239, against a 0.025 budget); the estimate is the peak within 0.1%. A circular arc
+    of 90 degrees, sampled unevenly, is estimated within 0.5% of its exact sag, not above it by more
+    (no point wasted on it)."""
+    from worker.dst.sampling import _parabola_peak
+
+    def peak(t, f):
+        return float(_parabola_peak(np.asarray([t]), np.asarray([f]), np.array([True]))[0])
+
+    def skewed(t):
+        return t * (1.0 - t) * (1.0 + 3.0 * t)
+
+    t = np.array([0.25, 0.5, 0.75])
+    fine = np.linspace(0.0, 1.0, 100_001)
+    parabola = np.polyfit(t, skewed(t), 2)
+    assert np.polyval(parabola, fine).max() < 0.975 * skewed(fine).max()
+    assert peak(t, skewed(t)) == pytest.approx(skewed(fine).max(), rel=1e-3)
+
+    # the arc of radius 1 from -45 to +45 degrees over its chord (y = cos 45 deg), sampled at
+    # uneven angles: chord position t and distance of each sample
+    half = math.radians(45.0)
+    ang = np.radians([-30.0, 5.0, 32.0])
+    x, y = np.sin(ang), np.cos(ang)
+    t_s = (x + math.sin(half)) / (2.0 * math.sin(half))
+    assert peak(t_s, y - math.cos(half)) == pytest.approx(1.0 - math.cos(half), rel=5e-3)
