@@ -55,6 +55,12 @@ from worker.dst.topomesh import TopoMesh
 # chord budget: the samples (midpoint, quarter points, the parabola through them) can miss the true
 # largest distance by a few per cent where the bend is off-centre.
 CHORD_FILL = 0.97
+# A segment whose curve lies more than this share of its length from its chord turns through more
+# than ~67 degrees (a circular arc: 4 atan(2 sag / length)): no shallow arc, whose largest distance the
+# samples show. Such a segment is split while its sampled distance is above a quarter of the budget
+# (Ventilator turned (-135.2, -164.2, -177.2) at z = 0.1: a 0.117 mm segment round a 0.035 mm bend,
+# sampled at 0.022 at its midpoint, one quarter point on the curve past its end, was 0.032 from it).
+DEEP_BEND_REL = 0.15
 GAP_SPAN_REL = 1e-6  # a seed interval this small (relative to its run) cannot hold another exact point
 # A segment's midpoint (placed by arc length along the seed path) this close to either end, relative
 # to the segment, is off the path: solved again from the chord's middle (``_midpoints_off_the_path``)
@@ -149,6 +155,7 @@ class SamplingStats:
     spur_vertices: int = 0  # ring vertices dropped as tips of spurs onto a face's extension
     reordered_crossings: int = 0  # crossings put at the section point nearest them (see _solve_crossing)
     kink_corners: int = 0  # corners placed where a section crosses a C0 line inside a face
+    deep_bends: int = 0  # segments split for turning through more than ~67 degrees (DEEP_BEND_REL)
     quarter_checks: int = 0  # segments also checked at their quarter points (see _quarter_sags)
     inflection_checks: int = 0  # segments checked again for an inflection inside (_inflected_segments)
     unchecked_segments: int = 0  # segments whose midpoint could not be placed (see _midpoints_off_the_path)
@@ -1465,7 +1472,10 @@ class RingSampler:
                 self._quarter_sags(
                     solve, sag, mid, mid_ok, length, pending, run_traced[ri], everywhere=forced
                 )
-                bad = ((length > L) | (sag > CHORD_FILL * e)) & (length > 1e-9)
+                bad = (length > L) | (sag > CHORD_FILL * e)
+                deep = ~bad & (sag > 0.25 * e) & (sag > DEEP_BEND_REL * length) & (length > 1e-9)
+                self.stats.deep_bends += int(deep.sum())
+                bad = (bad | deep) & (length > 1e-9)
                 forced = False  # (the parts of a segment checked everywhere: as any other)
                 # No exact point halfway: the plane is tangent to the surface along this segment (the
                 # section degenerates to a line or a point there). Keep the segment, count it.

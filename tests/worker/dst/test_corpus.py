@@ -490,6 +490,34 @@ def test_off_centre_bends_are_within_budget_and_a_loose_files_offsets_are_put_do
 
 
 @pytest.mark.slow
+def test_a_segment_round_a_deep_bend_is_split_whatever_its_samples_say():
+    """Ventilator turned to (-135.2, -164.2, -177.2), first plane (z = 0.1): a 0.117 mm ring segment
+    round a ~0.035 mm bend was sampled at 0.022 mm at its midpoint, one of its quarter points landed
+    on the curve past the segment's end (saying nothing), and the curve lay 0.032 mm from it against
+    the 0.025 budget. A segment whose sampled distance exceeds 0.15 of its length turns through more
+    than ~67 degrees and is split (``stats['deep_bends']``): every exact point of the plane's section
+    is within the budget of the ring."""
+    from worker.dst.deviation import SegmentSet, cut_mesh
+    from worker.dst.report import MeshInput, _exact_reference, _on_bed
+
+    path = CORPUS / "freeform" / "Ventilator.stp"
+    if not path.is_file():
+        pytest.skip(f"the shared STEP corpus is not beside this checkout ({CORPUS})")
+    params = _params(path).model_copy(
+        update=dict(zip(ROTATION_FIELDS, (-135.2, -164.2, -177.2), strict=True))
+    )
+    mesh = slice_step(path, params)
+    assert mesh.stats["deep_bends"] > 0
+    heights = mesh.planes.section_z[:1]
+    ref = _exact_reference(mesh.part, params, heights, helper=False).sections
+    v, tr = _on_bed(MeshInput("dst", "dst", mesh.vertices32, mesh.triangles, None, ""))  # the STL's
+    cut = cut_mesh(v, tr, heights)
+    pts = np.concatenate(ref.loops[0])
+    d = SegmentSet(cut.seg, cut.seg_plane).distance(pts, np.zeros(len(pts), dtype=np.int64))
+    assert d.max() <= params.chord_error + 1e-6, pts[np.argmax(d)]
+
+
+@pytest.mark.slow
 def test_report_reference_keeps_a_tongue_tip_its_trace_between_suspects_would_lose():
     """boxed_sphere turned to (-11.5, -70.9, -79.8): at four planes the reference (sampled to 1 um,
     where the DST build's 25 um accepts longer segments) passed a tongue's tip several times over
