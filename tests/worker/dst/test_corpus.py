@@ -454,6 +454,21 @@ def test_report_reference_follows_the_curve_where_its_crossings_come_out_of_orde
     assert not [w for w in report.warnings if "reference misses part of the section" in w], report.warnings
 
 
+def _exact_points_from_ring(mesh, heights: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every exact point of the report's reference at ``heights`` (above the part's lowest point),
+    its distance from the DST mesh's cut there (its STL's float32 vertices, placed as a slicer
+    places them) and the index of its plane among ``heights``: (distances, planes, points)."""
+    from worker.dst.deviation import SegmentSet, cut_mesh
+    from worker.dst.report import MeshInput, _exact_reference, _on_bed
+
+    ref = _exact_reference(mesh.part, mesh.params, heights, helper=False).sections
+    v, tr = _on_bed(MeshInput("dst", "dst", mesh.vertices32, mesh.triangles, None, ""))
+    cut = cut_mesh(v, tr, heights)
+    pts = np.concatenate([p for ls in ref.loops for p in ls])
+    plane = np.concatenate([np.full(len(p), j) for j, ls in enumerate(ref.loops) for p in ls])
+    return SegmentSet(cut.seg, cut.seg_plane).distance(pts, plane), plane, pts
+
+
 @pytest.mark.slow
 def test_off_centre_bends_are_within_budget_and_a_loose_files_offsets_are_put_down_to_it():
     """boxed_sphere turned to (16.7, -95.9, 65.9). Two segments' curves peaked off their middles
@@ -464,22 +479,12 @@ def test_off_centre_bends_are_within_budget_and_a_loose_files_offsets_are_put_do
     within the budget of the ring (float32 slack only). And at five planes the ring's vertices lie
     on a face 2-6 um from the reference, within that face's 0.059 mm edge tolerance: the report
     says the file is exact only to its tolerances there, and names no gap of its reference."""
-    from worker.dst.deviation import SegmentSet, cut_mesh
-    from worker.dst.report import MeshInput, _exact_reference, _on_bed
-
     path = CORPUS / "assembly" / "boxed_sphere.step"
     if not path.is_file():
         pytest.skip(f"the shared STEP corpus is not beside this checkout ({CORPUS})")
     params = _params(path).model_copy(update=dict(zip(ROTATION_FIELDS, (16.7, -95.9, 65.9), strict=True)))
     mesh = slice_step(path, params)
-    heights = mesh.planes.section_z
-    ref = _exact_reference(mesh.part, params, heights, helper=False).sections
-    v, tr = _on_bed(MeshInput("dst", "dst", mesh.vertices32, mesh.triangles, None, ""))  # the STL's
-    cut = cut_mesh(v, tr, heights)
-    ring = SegmentSet(cut.seg, cut.seg_plane)
-    pts = np.concatenate([p for ls in ref.loops for p in ls])
-    plane = np.concatenate([np.full(len(p), j) for j, ls in enumerate(ref.loops) for p in ls])
-    d = ring.distance(pts, plane)
+    d, plane, _ = _exact_points_from_ring(mesh, mesh.planes.section_z)
     worst = int(np.argmax(d))
     assert d[worst] <= params.chord_error + 1e-6, (mesh.planes.z[plane[worst]], d[worst])
 
@@ -497,9 +502,6 @@ def test_a_segment_round_a_deep_bend_is_split_whatever_its_samples_say():
     the 0.025 budget. A segment whose sampled distance exceeds 0.15 of its length turns through more
     than ~67 degrees and is split (``stats['deep_bends']``): every exact point of the plane's section
     is within the budget of the ring."""
-    from worker.dst.deviation import SegmentSet, cut_mesh
-    from worker.dst.report import MeshInput, _exact_reference, _on_bed
-
     path = CORPUS / "freeform" / "Ventilator.stp"
     if not path.is_file():
         pytest.skip(f"the shared STEP corpus is not beside this checkout ({CORPUS})")
@@ -508,12 +510,7 @@ def test_a_segment_round_a_deep_bend_is_split_whatever_its_samples_say():
     )
     mesh = slice_step(path, params)
     assert mesh.stats["deep_bends"] > 0
-    heights = mesh.planes.section_z[:1]
-    ref = _exact_reference(mesh.part, params, heights, helper=False).sections
-    v, tr = _on_bed(MeshInput("dst", "dst", mesh.vertices32, mesh.triangles, None, ""))  # the STL's
-    cut = cut_mesh(v, tr, heights)
-    pts = np.concatenate(ref.loops[0])
-    d = SegmentSet(cut.seg, cut.seg_plane).distance(pts, np.zeros(len(pts), dtype=np.int64))
+    d, _, pts = _exact_points_from_ring(mesh, mesh.planes.section_z[:1])
     assert d.max() <= params.chord_error + 1e-6, pts[np.argmax(d)]
 
 
