@@ -23,6 +23,13 @@ DENSE_SPACING_MM = 0.2
 _K_NEIGHBOURS = 4
 _QUERY_CHUNK = 8192  # queries per nearest-segment search step
 _FIRST_RADIUS_MM = 0.5  # see SegmentSet._nearest
+# A set whose k-d tree is not built yet answers a search by trying every segment of each point's
+# plane while that takes at most this many point-segment distances per segment of the set (or the
+# minimum): the tree costs about as much to build as ~5 such distances per segment.
+_BRUTE_PAIRS_PER_SEGMENT = 4
+_BRUTE_PAIRS_MIN = 20_000
+# see _covering_pairs
+_MAX_COVER = 256
 CORNER_RAD = 1.0  # a reference polyline turning more than this (rad) at a vertex has a corner there
 _PLANE_SEPARATION_MM = 1e7  # farther than any two points of a part in one plane
 _PAIR_PIECES = 2.0  # see segment_pairs_near
@@ -505,6 +512,19 @@ def arc_midpoints(seg: np.ndarray, curv: np.ndarray) -> np.ndarray:
     return midpoints(seg) + off[:, None] * normal
 
 
+def _loop_runs(nxt: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """For successors ``nxt`` of closed loops each of consecutive spans (each span's successor the
+    next one, the last's the loop's first), each span's loop's first span and its size; (None,
+    None) for any other order."""
+    n = len(nxt)
+    last = np.flatnonzero(nxt != np.arange(1, n + 1))
+    starts = np.concatenate([[0], last[:-1] + 1]) if len(last) else np.zeros(0, dtype=np.int64)
+    if n == 0 or last[-1] != n - 1 or not np.array_equal(nxt[last], starts):
+        return None, None
+    size = last - starts + 1
+    return np.repeat(starts, size), np.repeat(size, size)
+
+
 class SegmentSet:
     """Distance from points to the nearest of a set of segments (or shallow curves) in the same plane.
 
@@ -523,9 +543,12 @@ class SegmentSet:
         nxt: np.ndarray | None = None,
         chord: float = 0.0,
         neighbours: np.ndarray | None = None,
+        lazy: bool = False,
     ):
         self.seg, self.seg_plane, self.spacing = seg, seg_plane, spacing
         self.nxt, self.chord = nxt, chord  # closed loops: next span; the curves' sampling tolerance
+        # with loops of consecutive spans (``loop_successors``): each span's loop's first span and size
+        self.loop_first, self.loop_size = _loop_runs(nxt) if nxt is not None else (None, None)
         # (n, 2): the segments joined to each one's two ends (itself where none): the nearest segment
         # of a point is most often the nearest of a point close by or one of its neighbours
         if neighbours is None and nxt is not None:
@@ -549,17 +572,28 @@ class SegmentSet:
         # largest offset of a curve from its span: |phi0|, |phi1| <= 1/8
         self.max_offset = float((self.len2 * np.abs(self.curv).sum(axis=1)).max() / 8.0) if len(seg) else 0.0
         self._present = np.bincount(seg_plane) > 0 if len(seg) else np.zeros(0, dtype=bool)
-        pts, plane, self.owner = densify(seg, seg_plane, spacing)
-        # Segments mostly shorter than the spacing give two points each, both shared with the
-        # neighbours: the k nearest points then cover half as many places, and a search for k of
-        # them would need widening for a third of the points (a fine mesh's cut, ~2.4 points per
-        # segment): ask for twice k. (At ~3 points per segment, the hemisphere's reference, k is
-        # ~20% faster than twice k; at 2.4, ~15% slower.)
-        self.k = _K_NEIGHBOURS if len(pts) >= 2.5 * len(seg) else 2 * _K_NEIGHBOURS
-        # unbalanced, non-compact: builds ~3x faster and queries no slower on these point sets
-        self.tree = (
-            cKDTree(self._lift(pts, plane), balanced_tree=False, compact_nodes=False) if len(pts) else None
-        )
+        self._tree: cKDTree | None = None
+        self._by_plane: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        if not lazy and len(seg):
+            self._index()
+
+    @property
+    def tree(self) -> cKDTree:
+        return self._index()
+
+    def _index(self) -> cKDTree:
+        """The k-d tree of points along the segments (built on first use)."""
+        if self._tree is None:
+            pts, plane, self.owner = densify(self.seg, self.seg_plane, self.spacing)
+            # Segments mostly shorter than the spacing give two points each, both shared with the
+            # neighbours: the k nearest points then cover half as many places, and a search for k of
+            # them would need widening for a third of the points (a fine mesh's cut, ~2.4 points per
+            # segment): ask for twice k. (At ~3 points per segment, the hemisphere's reference, k is
+            # ~20% faster than twice k; at 2.4, ~15% slower.)
+            self.k = _K_NEIGHBOURS if len(pts) >= 2.5 * len(self.seg) else 2 * _K_NEIGHBOURS
+            # unbalanced, non-compact: builds ~3x faster and queries no slower on these point sets
+            self._tree = cKDTree(self._lift(pts, plane), balanced_tree=False, compact_nodes=False)
+        return self._tree
 
     def _lift(self, pts: np.ndarray, plane: np.ndarray) -> np.ndarray:
         # each plane's points lifted far from every other plane's: one tree serves all planes
@@ -577,7 +611,7 @@ class SegmentSet:
         (inf and -1 if the plane has none)."""
         out = np.full(len(pts), np.inf)
         idx = np.full(len(pts), -1, dtype=np.int64)
-        if self.tree is None or not len(pts):
+        if not len(self.seg) or not len(pts):
             return out, idx
         plane = np.asarray(plane)
         has = np.zeros(len(plane), dtype=bool)
@@ -585,6 +619,13 @@ class SegmentSet:
         has[inside] = self._present[plane[inside]]
         if not has.any():
             return out, idx
+        if self._tree is None:
+            order, start, count = self._plane_order()
+            pairs = int(count[plane[has]].sum())
+            if pairs <= max(_BRUTE_PAIRS_PER_SEGMENT * len(self.seg), _BRUTE_PAIRS_MIN):
+                out[has], idx[has] = self._brute(pts[has], plane[has])
+                return out, idx
+        self._index()
         p2, q = pts[has], self._lift(pts[has], plane[has])
         # in chunks whose (chunk, k, columns) temporaries stay in the CPU's cache: ~10% faster
         found = [
@@ -604,10 +645,10 @@ class SegmentSet:
         # the first search bounded: it visits fewer tree nodes (~8% less measuring time), and its
         # answer is sure for every point within _FIRST_RADIUS_MM of the segments
         bound = _FIRST_RADIUS_MM + reach
-        n = self.tree.n
+        n = self._tree.n
         while len(todo):
             k = min(k, n)
-            dk, ik = self.tree.query(q[todo], k=k, workers=workers, distance_upper_bound=bound)
+            dk, ik = self._tree.query(q[todo], k=k, workers=workers, distance_upper_bound=bound)
             dk, ik = dk.reshape(len(todo), k), ik.reshape(len(todo), k)
             found = ik < n  # fewer than k points within the bound: the others come back as index n
             owner = self.owner[np.where(found, ik, 0)]
@@ -626,6 +667,29 @@ class SegmentSet:
             todo = todo[(last <= ball) | (np.isinf(last) & (ball >= bound))]
             k *= 4
             bound = np.inf
+        return d, idx
+
+    def _plane_order(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The segments in plane order, and each plane's first position and count in it."""
+        if self._by_plane is None:
+            order = np.argsort(self.seg_plane, kind="stable")
+            count = np.bincount(self.seg_plane)
+            self._by_plane = (order, np.cumsum(count) - count, count)
+        return self._by_plane
+
+    def _brute(self, pts: np.ndarray, plane: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Nearest segment of each point (whose plane has segments) by trying every segment of its
+        plane: for a few points, cheaper than building the k-d tree."""
+        order, start, count = self._plane_order()
+        c = count[plane]
+        first = np.cumsum(c) - c
+        q = np.repeat(np.arange(len(pts)), c)
+        s = order[np.repeat(start[plane] - first, c) + np.arange(len(q))]
+        dist = _point_curve(pts[q], self._rows[s])
+        d = np.minimum.reduceat(dist, first)
+        at = np.flatnonzero(dist == d[q])
+        idx = np.empty(len(pts), dtype=np.int64)
+        idx[q[at][::-1]] = s[at][::-1]  # of equal ones, the first
         return d, idx
 
     def distance_to(self, pts: np.ndarray, candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -757,6 +821,107 @@ def _first_per_plane(values: np.ndarray, plane: np.ndarray) -> np.ndarray:
     return first[first >= 0]
 
 
+def _reference_to_cut(
+    ref: SegmentSet,
+    cut_set: SegmentSet,
+    ends_near: np.ndarray,
+    cut_has: np.ndarray,
+    n_planes: int,
+    workers: int,
+) -> np.ndarray:
+    """Per plane, the largest distance from the reference's closed loops (each span's peak from its
+    ends and its arc midpoint, ``span_max``) to the cut, at the planes the cut reaches (-inf at the
+    others). ``ends_near``: (m, 2) the reference span nearest to each end of every cut segment.
+
+    Exact, as a search for every point would give it, with few searches: each reference vertex is
+    first measured against the cut segments whose ends lie nearest to the spans round it (an upper
+    bound of its distance, ``_covering_pairs``), each arc midpoint against the neighbours of its
+    ends' segments; the vertices none covers and the one with the largest bound of each plane are
+    then searched, which gives a lower bound of the plane's largest distance; a span whose bounds (plus ``span_max``'s cap) stay
+    below it cannot reach it, and only the others are searched: their ends, then their midpoints
+    where the peak could still be the plane's largest."""
+    n_ref = len(ref.seg)
+    sel = cut_has[ref.seg_plane]  # elsewhere the distances are undefined (NaN in ``compare``)
+    d0 = np.full(n_ref, np.inf)
+    near0 = np.full(n_ref, -1, dtype=np.int64)
+    vertex, segment = _covering_pairs(ref, ends_near)
+    if len(vertex):
+        dist = _point_curve(ref.seg[vertex, 0], cut_set._rows[segment])
+        order = np.argsort(vertex, kind="stable")
+        vertex, segment, dist = vertex[order], segment[order], dist[order]
+        first = np.flatnonzero(np.concatenate([[True], vertex[1:] != vertex[:-1]]))
+        best = np.minimum.reduceat(dist, first)
+        group = np.repeat(np.arange(len(first)), np.diff(np.append(first, len(vertex))))
+        at = np.flatnonzero(dist == best[group])[::-1]  # of equal ones, the first
+        near0[vertex[at]] = segment[at]
+        d0[vertex[first]] = best
+    exact = np.zeros(n_ref, dtype=bool)
+    d0[~sel] = -np.inf  # not measured
+
+    def search(ids: np.ndarray) -> None:
+        ids = ids[~exact[ids]]
+        d0[ids], near0[ids] = cut_set.nearest(ref.seg[ids, 0], ref.seg_plane[ids], workers=workers)
+        exact[ids] = True
+
+    ids = np.flatnonzero(sel)
+    if not len(ids):
+        return np.full(n_planes, -np.inf)
+    plane = ref.seg_plane[ids]
+    # those no cut segment covers (they need a search whatever the plane's largest) and each plane's
+    # largest bound
+    uncovered = ids[np.isinf(d0[ids])]
+    search(np.concatenate([uncovered, ids[_first_per_plane(d0[ids], plane)]]))
+    lower = max_per_plane(d0[ids][exact[ids]], plane[exact[ids]], n_planes)
+    nxt = ref.nxt[ids]
+    mid = arc_midpoints(ref.seg[ids], ref.curv[ids])
+    d_mid, _ = cut_set.distance_to(mid, cut_set.around(np.column_stack([near0[ids], near0[nxt]])))
+    bound = np.maximum(np.maximum(d0[ids], d0[nxt]), d_mid) + ref.chord
+    need = np.flatnonzero(bound > lower[plane])  # spans that could reach their plane's largest
+    ends = np.zeros(n_ref, dtype=bool)
+    ends[ids[need]] = ends[nxt[need]] = True
+    search(np.flatnonzero(ends))
+    f0, f1 = d0[ids[need]], d0[nxt[need]]
+    lower = np.maximum(lower, max_per_plane(np.maximum(f0, f1), plane[need], n_planes))
+    # a midpoint's distance raises its span's peak: searched where the bound (now also from its
+    # ends' nearest segments as searched) could be the largest
+    again_near = cut_set.around(np.column_stack([near0[ids[need]], near0[nxt[need]]]))
+    fm = np.minimum(d_mid[need], cut_set.distance_to(mid[need], again_near)[0])
+    again = span_max(f0, fm, f1, ref.chord) > lower[plane[need]]
+    fm[again] = cut_set.distance(mid[need][again], plane[need][again], workers=workers)
+    peak = max_per_plane(span_max(f0, fm, f1, ref.chord), plane[need], n_planes)
+    return np.maximum(lower, peak)
+
+
+def _covering_pairs(ref: SegmentSet, ends_near: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(reference vertex, cut segment) pairs: every cut segment with the reference vertices between
+    the spans nearest to its two ends ``ends_near`` ((m, 2), -1 for none), along their loop the
+    shorter way and one more at either end; a segment whose ends are nearest to different loops,
+    or to spans more than ``_MAX_COVER`` vertices apart, with the vertices of those two spans."""
+    ra, rb = ends_near[:, 0], ends_near[:, 1]
+    ok = (ra >= 0) & (rb >= 0)
+    ra, rb, seg = ra[ok], rb[ok], np.flatnonzero(ok)
+    first, size = ref.loop_first[ra], ref.loop_size[ra]
+    pa, pb = ra - first, rb - ref.loop_first[rb]
+    fwd = (pb - pa) % size
+    forward = fwd <= size // 2
+    start = np.where(forward, pa, pb)
+    count = np.minimum(np.where(forward, fwd, size - fwd) + 2, size)
+    along = (ref.loop_first[rb] == first) & (count <= _MAX_COVER)
+    # along the loop: count vertices from start; otherwise both spans' two vertices
+    n = np.where(along, count, 4)
+    owner = np.repeat(np.arange(len(seg)), n)
+    k = np.arange(len(owner)) - np.repeat(np.cumsum(n) - n, n)
+    o_along = along[owner]
+    vertex = np.where(
+        o_along,
+        first[owner] + (start[owner] + k) % size[owner],
+        np.where(k < 2, ra[owner], rb[owner]),
+    )
+    nxt_of = ~o_along & (k % 2 == 1)  # the span's second vertex
+    vertex[nxt_of] = ref.nxt[vertex[nxt_of]]
+    return vertex, seg[owner]
+
+
 def compare(
     cut: MeshCut, ref: SegmentSet, ref_perimeter: np.ndarray, n_planes: int, *, workers: int = -1
 ) -> LayerMetrics:
@@ -794,40 +959,25 @@ def compare(
     )
     d_cut_to_ref = np.maximum(vertex_dev, max_per_plane(d_mid, cut.seg_plane, n_planes))
 
+    # the cut's own k-d tree only if a search needs it: most reference points get their distance
+    # from the cut segments round them (below)
     cut_set = SegmentSet(
         cut.seg,
         cut.seg_plane,
         spacing=ref.spacing,
         neighbours=segment_neighbours(cut.seg_node),
+        lazy=True,
     )
     # every vertex of the closed reference loops and the curve's point over every span's midpoint;
-    # with loops known, each span's peak is interpolated from its three values (the midpoints
-    # exactly where that peak could be the plane's largest)
+    # with loops known, each span's peak is interpolated from its three values, exactly where that
+    # peak could be its plane's largest
     n_ref = len(ref.seg)
-    if ref.nxt is not None and n_ref:
-        # only at planes the cut reaches (elsewhere the distances are undefined: NaN below)
-        sel = np.flatnonzero(cut_has[ref.seg_plane])
-        plane = ref.seg_plane[sel]
-        d0 = np.full(n_ref, np.inf)
-        near0 = np.full(n_ref, -1, dtype=np.int64)
-        d0[sel], near0[sel] = cut_set.nearest(ref.seg[sel, 0], plane, workers=workers)
-        d_start, d_end = d0[sel], d0[ref.nxt[sel]]
-        d_mid = _bounded_distances(
-            cut_set,
-            arc_midpoints(ref.seg[sel], ref.curv[sel]),
-            plane,
-            cut_set.around(np.column_stack([near0[sel], near0[ref.nxt[sel]]])),
-            lambda d: span_max(d_start, d, d_end, ref.chord),
-            max_per_plane(d_start, plane, n_planes),
-            n_planes,
-            workers,
-        )
-        d_ref, ref_pl = span_max(d_start, d_mid, d_end, ref.chord), plane
+    if ref.loop_first is not None and n_ref:
+        d_ref_to_cut = _reference_to_cut(ref, cut_set, near_vert[cut.seg_node], cut_has, n_planes, workers)
     else:
         ref_pts = np.concatenate([ref.seg[:, 0], arc_midpoints(ref.seg, ref.curv)])
         ref_pl = np.concatenate([ref.seg_plane, ref.seg_plane])
-        d_ref = cut_set.distance(ref_pts, ref_pl, workers=workers)
-    d_ref_to_cut = max_per_plane(d_ref, ref_pl, n_planes)
+        d_ref_to_cut = max_per_plane(cut_set.distance(ref_pts, ref_pl, workers=workers), ref_pl, n_planes)
     chord_dev = np.maximum(d_ref_to_cut, d_cut_to_ref)
 
     cut_perimeter = segment_lengths_per_plane(cut.seg, cut.seg_plane, n_planes)

@@ -364,6 +364,58 @@ def test_measuring_only_the_points_that_can_matter_gives_the_same_maxima(n_ring,
     assert pruned < 0.7 * sum(searched)
 
 
+@pytest.mark.parametrize("n_ring", [6, 40, 300])  # cut segments covering ~330 (> _MAX_COVER) to ~7 spans
+def test_reference_points_take_their_distances_from_the_cut_segments_round_them(n_ring, monkeypatch):
+    """compare measures each reference vertex first against the cut segments whose ends lie nearest
+    to the spans round it, and searches only where that could change a plane's maximum. Cases
+    where those segments are not the nearest: two reference loops 0.06 mm apart (a thin wall) with
+    the cut between them, its ends nearest to either loop; a reference loop no cut segment comes
+    near (plane 1); a cut loop far from any reference loop (plane 2); a loop's seam inside a cut
+    segment. Every metric equals the one from a search for every point, and on the finer cuts the
+    cut's own k-d tree is searched for few of the reference's points."""
+    rng = np.random.default_rng(n_ring)
+    heights = np.array([0.5, 1.5, 2.5])
+    z = np.arange(4.0)
+    rings = []
+    for zk in z:
+        t = np.linspace(0, 2 * np.pi, n_ring, endpoint=False) + rng.uniform(0, 0.01)
+        r = 8.03 + 0.3 * np.sin(3 * t + zk) + rng.normal(0, 0.01, n_ring)
+        rings.append(np.column_stack([r * np.cos(t), r * np.sin(t)]))
+    v, tri = stacked(rings, z)
+    far_v, far_tri = prism(circle(1.0, 12, 30.0, 0.0), (2.2, 2.8))  # cut at plane 2 only
+    cut = cut_mesh(np.vstack([v, far_v]), np.vstack([tri, far_tri + len(v)]), heights)
+    loops = []
+    for j, h in enumerate(heights):
+        t = np.linspace(0, 2 * np.pi, 2000, endpoint=False) + 0.3 * j  # seams at different places
+        r = 8 + 0.3 * np.sin(3 * t + h + 0.5)
+        walls = (1.0, 1.0075) if j == 0 else (1.0,)
+        plane_loops = [np.column_stack([r * np.cos(t), r * np.sin(t)]) * s for s in walls]
+        if j == 1:
+            plane_loops.append(circle(0.5, 300, -20.0, 0.0))
+        loops.append(plane_loops)
+    seg, plane = loops_to_segments(loops)
+    ref = SegmentSet(
+        seg, plane, curv=span_curvatures(loops, chord=1e-3), nxt=loop_successors(loops), chord=1e-3
+    )
+    searched = []
+    nearest = SegmentSet.nearest
+
+    def counting(self, pts, pl, **kw):
+        if self is not ref:
+            searched.append(len(pts))
+        return nearest(self, pts, pl, **kw)
+
+    monkeypatch.setattr(SegmentSet, "nearest", counting)
+    m = compare(cut, ref, np.ones(len(heights)), len(heights))
+    pruned = sum(searched)
+    vertex_dev, chord_dev = every_point_searched(cut, ref, len(heights))
+    np.testing.assert_array_equal(m.vertex_dev, vertex_dev)
+    np.testing.assert_array_equal(m.chord_dev, chord_dev)
+    assert chord_dev[1] > 10 and chord_dev[2] > 20  # the unmatched loops count
+    if n_ring >= 40:  # (the wall's loop nearest to none of the cut's vertices is searched)
+        assert pruned < 0.4 * len(seg)
+
+
 def test_self_crossings_find_the_pockets_a_loop_winds_round():
     """A loop through points of a circle crosses itself nowhere in order; with two neighbours
     swapped it makes a bow tie (a pocket of no area); going round three times (each step 3/25 of a
