@@ -636,8 +636,11 @@ def _build_report(
         if arrived := side.items_ready():  # the others as OCCT makes them
             todo.extend(arrived)
             add(arrived)
-        # This process measures only once OCCT is done: until then its core is OCCT's or a helper's.
-        here = side.done()
+        # This process measures only once OCCT has made every baseline: until then its core is
+        # OCCT's or a helper's. (Not once the helper has ended: its end may come a moment after
+        # its last baseline, and the waiting work would have gone out whole to one helper, the
+        # hemisphere's 0.005 mm baseline measured on one core while this one waited, ~0.15 s.)
+        here = side.done() or sum(m.kind == "baseline" for m in todo) == len(baselines)
         hand_out(here)
         if pending and here:
             measure([pending.pop(0)], False)
