@@ -79,9 +79,6 @@ CURA_MIN_CIRCUMFERENCE_MM = 1.0
 # A measuring helper gets at least this much work (``_plane_costs`` units: searched points; ~0.1 s
 # on the development machine): less costs more to fork than it saves.
 MIN_MEASURE_CHUNK = 60_000
-# While OCCT still makes baselines (and the report's own process does not measure), less waiting
-# work than this many MIN_MEASURE_CHUNKs goes to the free helpers at once
-LAST_OUT_CHUNKS = 4
 # Measuring the DST mesh costs this fraction of what ``_plane_costs`` says (its cut's vertices lie
 # on the exact sections: their searches end at once); measured on the hemisphere and the soapbox
 DST_COST = 0.65
@@ -552,16 +549,18 @@ def _build_report(
         )
     todo.extend(meshes)
     report("measuring meshes", 0.4)
-    # Measured in helper processes (see ``start``); one k-d tree thread each when they run side by
-    # side.
+    # Measured here and in helper processes (``hand_out``): one k-d tree thread each, side by side.
     workers = 1 if tasks.forked and tasks.limit > 1 else -1
     ref_per_plane = np.bincount(ref_set.seg_plane, minlength=n_planes)
     measuring: dict[int, list[tuple[int, Task, int]]] = {}  # per mesh: (first plane, task, piece)
 
     # Each mesh's plane ranges ("pieces", each a sixth of a helper's share or less) wait here, largest
-    # first, until whoever is free takes them (``hand_out``): a free helper some, and once OCCT has
-    # made every baseline, this process one by one. So no core waits for a share handed out before
-    # the last mesh came, and none finishes long before the others.
+    # first. This process measures them one by one (between two, it takes the baselines OCCT has
+    # made since), and a core that neither OCCT nor this process uses gets a helper with its part of
+    # the waiting work (``hand_out``): while OCCT makes the finer baselines, this process measures
+    # on the other core; once it is done, a helper takes about half of what waits. A helper costs a
+    # fork and its first touches of the shared memory (the hemisphere's report took ~0.1 CPU-s
+    # more with a helper for every core while OCCT worked and this process waited).
     pending: list[tuple[float, MeshInput, int, int]] = []
     placed: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # once per mesh; the helpers share it
 
@@ -600,34 +599,25 @@ def _build_report(
         for k, (_, m, j0, _) in enumerate(share):
             measuring.setdefault(id(m), []).append((j0, task, k))
 
-    def hand_out(here: bool) -> None:
-        # ``here``: this process measures too. A free helper takes, largest first, pieces worth half
-        # its part of the waiting work (never less than MIN_MEASURE_CHUNK: a fork costs ~25 ms of
-        # CPU); the rest waits for whoever frees up next, so the work ends at about the same time
-        # everywhere. The last of it, when this process does not measure yet, goes out whole.
+    def hand_out() -> None:
+        # A helper for each core neither OCCT nor this process takes, with about its part of the
+        # waiting work (never less than MIN_MEASURE_CHUNK: a fork costs ~25 ms of CPU); this process
+        # takes the rest piece by piece, so the work ends at about the same time everywhere.
         if not tasks.forked or not pending:
             return
-        free = tasks.free()
         work = sum(p[0] for p in pending)
-        helpers = min(free, int(work // MIN_MEASURE_CHUNK)) if here else free
+        helpers = min(tasks.free() - 1, int(work // MIN_MEASURE_CHUNK) - 1)
         if helpers < 1:
             return
-        if not here and work < LAST_OUT_CHUNKS * MIN_MEASURE_CHUNK:
-            shares = _pack(pending, helpers)
-            pending.clear()
-        else:
-            target = max(MIN_MEASURE_CHUNK, work / (2 * (helpers + here)))
-            shares = []
-            for _ in range(helpers):
-                share: list[tuple[float, MeshInput, int, int]] = []
-                got = 0.0
-                while pending and got < target:
-                    share.append(pending.pop(0))
-                    got += share[-1][0]
-                if share:
-                    shares.append(share)
-        for share in shares:
-            measure(share, True)
+        target = work / (helpers + 1)
+        for _ in range(helpers):
+            share: list[tuple[float, MeshInput, int, int]] = []
+            got = 0.0
+            while len(pending) > 1 and got < target:
+                share.append(pending.pop(0))
+                got += share[-1][0]
+            if share:
+                measure(share, True)
 
     todo.extend(side.items_ready())  # the baselines OCCT has made already
     add(todo)
@@ -636,18 +626,13 @@ def _build_report(
         if arrived := side.items_ready():  # the others as OCCT makes them
             todo.extend(arrived)
             add(arrived)
-        # This process measures only once OCCT has made every baseline: until then its core is
-        # OCCT's or a helper's. (Not once the helper has ended: its end may come a moment after
-        # its last baseline, and the waiting work would have gone out whole to one helper, the
-        # hemisphere's 0.005 mm baseline measured on one core while this one waited, ~0.15 s.)
-        here = side.done() or sum(m.kind == "baseline" for m in todo) == len(baselines)
-        hand_out(here)
-        if pending and here:
+        hand_out()
+        if pending:
             measure([pending.pop(0)], False)
-        elif here:
+        elif side.done() or sum(m.kind == "baseline" for m in todo) == len(baselines):
             break
-        elif not side.done():  # (hand_out may have read its end)
-            tasks.wait_any()  # a baseline, or a helper done
+        else:
+            tasks.wait_any()  # a baseline
     occt = _occt_result(side) or extent
     rank = {name: i for i, name in enumerate(baselines)}  # the baselines in the order asked for
     todo.sort(key=lambda m: rank[m.name] if m.kind == "baseline" else -1)
@@ -864,18 +849,6 @@ def _measure_pieces(
         _measure_planes(v, tr, heights, j0, j1, ref_set, ref_perimeter, below, n_planes, workers, check)
         for v, tr, j0, j1, check in pieces
     ]
-
-
-def _pack(pieces: list[tuple], n: int) -> list[list[tuple]]:
-    """Pieces (work first) shared out among ``n`` lists of about equal work: each, largest first, to
-    the list with the least so far. Lists in order of work, largest first; none empty."""
-    shares: list[list[tuple]] = [[] for _ in range(n)]
-    work = [0.0] * n
-    for piece in sorted(pieces, key=lambda p: p[0], reverse=True):
-        i = min(range(n), key=work.__getitem__)
-        shares[i].append(piece)
-        work[i] += piece[0]
-    return [shares[i] for i in sorted(range(n), key=lambda i: -work[i]) if shares[i]]
 
 
 def _mesh_report(

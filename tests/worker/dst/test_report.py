@@ -897,20 +897,6 @@ def test_a_crash_while_meshing_a_baseline_ends_the_report_cleanly(hemisphere, mo
         build_report(mesh.part, SliceParams(layer_height=0.2), file_name=str(path), dst=mesh)
 
 
-def test_measuring_pieces_are_packed_into_shares_of_about_equal_work():
-    from worker.dst.report import _pack
-
-    rng = np.random.default_rng(5)
-    pieces = [(float(w), f"mesh{i % 4}", i) for i, w in enumerate(rng.uniform(1, 10, 23))]
-    shares = _pack(pieces, 3)
-    assert sorted(p for share in shares for p in share) == sorted(pieces)  # each piece once
-    work = [sum(p[0] for p in share) for share in shares]
-    assert work == sorted(work, reverse=True)
-    assert max(work) - min(work) <= max(p[0] for p in pieces)
-    big, small = sorted(pieces[:2], reverse=True)
-    assert _pack(pieces[:2], 3) == [[big], [small]]  # fewer pieces than shares: no empty share
-
-
 def test_plane_ranges_cover_every_plane_once_in_about_equal_work():
     from worker.dst.report import _plane_ranges
 
