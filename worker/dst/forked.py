@@ -53,6 +53,18 @@ def usable_cpus() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+def idle_cores() -> int:
+    """How many of this process's CPUs no runnable thread on the machine waits for right now
+    (Linux: /proc/loadavg's count of runnable threads, this one included; elsewhere 0). A moment's
+    view, for deciding whether a helper would get a core of its own."""
+    try:
+        with open("/proc/loadavg") as fh:
+            runnable = int(fh.read().split()[3].split("/")[0])
+    except (OSError, ValueError, IndexError):
+        return 0
+    return max(0, usable_cpus() - runnable)
+
+
 def die_with_parent() -> None:
     """Linux: have this process killed when its parent dies, however it dies (no orphans left to
     run on after a job's process was killed for its timeout)."""

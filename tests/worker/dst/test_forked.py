@@ -11,7 +11,7 @@ import pytest
 
 from tests.conftest import process_dead
 from worker.dst.errors import TessellationError
-from worker.dst.forked import TaskDied, TaskGroup, fork_available
+from worker.dst.forked import TaskDied, TaskGroup, fork_available, idle_cores, usable_cpus
 
 needs_fork = pytest.mark.skipif(not fork_available(), reason="fork is used on Linux only")
 
@@ -261,3 +261,24 @@ def test_helpers_die_with_a_killed_job_process():
         assert process_dead(helper)
     finally:
         job.kill()
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/loadavg"), reason="idle cores are read from Linux's /proc")
+def test_no_core_is_idle_while_a_busy_process_runs_on_each():
+    """``idle_cores`` counts this process as running, so never more than all CPUs but one; with a
+    busy process on every CPU (this one waiting), none."""
+    assert 0 <= idle_cores() <= usable_cpus() - 1
+    busy = []
+    try:
+        for _ in range(usable_cpus()):
+            pid = os.fork()
+            if pid == 0:  # spin until killed
+                while True:
+                    pass
+            busy.append(pid)
+        time.sleep(0.2)
+        assert idle_cores() == 0
+    finally:
+        for pid in busy:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)

@@ -327,8 +327,9 @@ def _cut_of(mesh):
 
 
 def test_reference_sampled_in_a_helper_is_the_reference_sampled_here(hemisphere, monkeypatch, tmp_path):
-    """With a helper, the upper share of the reference's planes is sampled in another process, and
-    the sections are exactly the ones sampled all in this process."""
+    """The reference's sampling shares go one after the other in this process; when a core is idle
+    between two, half of those left go to a helper process. The sections are exactly the same
+    wherever the shares were sampled."""
     import os
 
     from worker.dst import reference
@@ -348,16 +349,31 @@ def test_reference_sampled_in_a_helper_is_the_reference_sampled_here(hemisphere,
     monkeypatch.setattr(reference, "_sample_loops", logged)
     heights = mesh.planes.section_z
     kw = dict(chord=1e-3, segment_length=2.0, deflection=0.01, parallel=False)
-    shared = exact_sections(mesh.part, heights, helper=True, **kw)
-    pids = log.read_text().split()
-    # one share here, one in a helper (either may log first: they run side by side)
-    assert len(pids) == 2 and str(os.getpid()) in pids and len(set(pids)) == 2
-    here = exact_sections(mesh.part, heights, helper=False, **kw)
-    assert set(log.read_text().split()[2:]) == {str(os.getpid())}
-    for a, b in zip(shared.loops, here.loops, strict=True):
-        assert len(a) == len(b) > 0
-        for p, q in zip(a, b, strict=True):
-            np.testing.assert_array_equal(p, q)
+    me = str(os.getpid())
+
+    def sampled(idle: list[int], helper: bool = True):
+        """The sections, and the processes that sampled the shares, with ``idle_cores`` answering
+        ``idle`` in turn (then 0)."""
+        answers = iter(idle)
+        monkeypatch.setattr(reference, "idle_cores", lambda: next(answers, 0))
+        log.write_text("")
+        sections = exact_sections(mesh.part, heights, helper=helper, **kw)
+        return sections, log.read_text().split()
+
+    assert reference.SAMPLING_SHARES == 4
+    here, pids = sampled([], helper=False)
+    assert pids == [me] * 4
+    busy, pids = sampled([0, 0, 0])  # no core idle: no helper
+    assert pids == [me] * 4
+    at_once, pids = sampled([1])  # a core idle at once: two shares each
+    assert sorted(pids).count(me) == 2 and len(set(pids)) == 2
+    later, pids = sampled([0, 1])  # idle after the first share: one of the three left
+    assert pids.count(me) == 3 and len(set(pids)) == 2
+    for other in (busy, at_once, later):
+        for a, b in zip(other.loops, here.loops, strict=True):
+            assert len(a) == len(b) > 0
+            for p, q in zip(a, b, strict=True):
+                np.testing.assert_array_equal(p, q)
 
 
 def test_reference_topology_retries_another_deflection(tmp_path, monkeypatch):
