@@ -879,13 +879,17 @@ def _reference_to_cut(
     need = np.flatnonzero(bound > lower[plane])  # spans that could reach their plane's largest
     ends = np.zeros(n_ref, dtype=bool)
     ends[ids[need]] = ends[nxt[need]] = True
+    before = near0.copy()
     search(np.flatnonzero(ends))
     f0, f1 = d0[ids[need]], d0[nxt[need]]
     lower = np.maximum(lower, max_per_plane(np.maximum(f0, f1), plane[need], n_planes))
-    # a midpoint's distance raises its span's peak: searched where the bound (now also from its
-    # ends' nearest segments as searched) could be the largest
-    again_near = cut_set.around(np.column_stack([near0[ids[need]], near0[nxt[need]]]))
-    fm = np.minimum(d_mid[need], cut_set.distance_to(mid[need], again_near)[0])
+    # a midpoint's distance raises its span's peak: searched where the bound (also from its ends'
+    # nearest segments as searched, where the search found others) could be the largest
+    fm = d_mid[need]
+    moved = np.flatnonzero((near0[ids[need]] != before[ids[need]]) | (near0[nxt[need]] != before[nxt[need]]))
+    if len(moved):
+        again_near = cut_set.around(np.column_stack([near0[ids[need][moved]], near0[nxt[need][moved]]]))
+        fm[moved] = np.minimum(fm[moved], cut_set.distance_to(mid[need][moved], again_near)[0])
     again = span_max(f0, fm, f1, ref.chord) > lower[plane[need]]
     fm[again] = cut_set.distance(mid[need][again], plane[need][again], workers=workers)
     peak = max_per_plane(span_max(f0, fm, f1, ref.chord), plane[need], n_planes)
