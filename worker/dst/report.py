@@ -76,12 +76,13 @@ REFERENCE_CHORD_MM = 1e-3
 REFERENCE_SEGMENT_MM = 2.0
 # Cura drops section loops shorter than this (minimum_polygon_circumference default)
 CURA_MIN_CIRCUMFERENCE_MM = 1.0
-# A measuring helper gets at least this much work (``_plane_costs`` units: searched points; ~0.1 s
-# on the development machine): less costs more to fork than it saves.
-MIN_MEASURE_CHUNK = 60_000
-# Measuring the DST mesh costs this fraction of what ``_plane_costs`` says (its cut's vertices lie
-# on the exact sections: their searches end at once); measured on the hemisphere and the soapbox
-DST_COST = 0.65
+# A measuring helper gets at least this much work (``_plane_costs`` units: cut segments, ~3.5 us of
+# CPU each; ~0.09 s): less costs more to fork than it saves.
+MIN_MEASURE_CHUNK = 25_000
+# Measuring costs ~3.5 us of CPU per cut segment and ~0.8 us per reference span (fitted on the four
+# default meshes of the hemisphere and the soapbox, whole and in plane ranges: within 20%, the
+# DST mesh's as well)
+REF_SPAN_COST = 0.23
 # Niceness of a job's helpers that start beside its DST build: they take the cores it leaves idle.
 # (The exact reference niced less than the OCCT helper, as it holds up every mesh's measuring, made
 # the hemisphere's job ~0.3 s slower: there the 0.005 mm baseline is the longest chain.)
@@ -554,7 +555,7 @@ def _build_report(
     ref_per_plane = np.bincount(ref_set.seg_plane, minlength=n_planes)
     measuring: dict[int, list[tuple[int, Task, int]]] = {}  # per mesh: (first plane, task, piece)
 
-    # Each mesh's plane ranges ("pieces", each a sixth of a helper's share or less) wait here, largest
+    # Each mesh's plane ranges ("pieces", each a twelfth of a helper's share or less) wait here, largest
     # first. This process measures them one by one (between two, it takes the baselines OCCT has
     # made since), and a core that neither OCCT nor this process uses gets a helper with its part of
     # the waiting work (``hand_out``): while OCCT makes the finer baselines, this process measures
@@ -567,14 +568,10 @@ def _build_report(
     def add(ms: list[MeshInput]) -> None:
         for m in ms:
             placed[id(m)] = _on_bed(m)
-        costs = {
-            id(m): _plane_costs(*placed[id(m)], heights, ref_per_plane)
-            * (DST_COST if m.kind == "dst" else 1.0)
-            for m in ms
-        }
+        costs = {id(m): _plane_costs(*placed[id(m)], heights, ref_per_plane) for m in ms}
         total = sum(float(c.sum()) for c in costs.values())
         n_tasks = max(1, min(tasks.limit, int(total // MIN_MEASURE_CHUNK))) if tasks.forked else 1
-        chunk = total / (6 * n_tasks) if n_tasks > 1 else np.inf  # pieces small enough to balance
+        chunk = total / (12 * n_tasks) if n_tasks > 1 else np.inf  # pieces small enough to balance
         pending.extend(
             (float(costs[id(m)][j0:j1].sum()), m, j0, j1)
             for m in ms
@@ -609,13 +606,15 @@ def _build_report(
         helpers = min(tasks.free() - 1, int(work // MIN_MEASURE_CHUNK) - 1)
         if helpers < 1:
             return
-        target = work / (helpers + 1)
+        target = work / (helpers + 1)  # all ending together
         for _ in range(helpers):
             share: list[tuple[float, MeshInput, int, int]] = []
             got = 0.0
-            while len(pending) > 1 and got < target:
-                share.append(pending.pop(0))
-                got += share[-1][0]
+            for piece in list(pending):  # largest first, as long as they fit
+                if len(pending) > 1 and (not share or got + piece[0] <= target):
+                    share.append(piece)
+                    pending.remove(piece)
+                    got += piece[0]
             if share:
                 measure(share, True)
 
@@ -917,15 +916,15 @@ def _mesh_report(
 
 def _plane_costs(v: np.ndarray, tr: np.ndarray, heights: np.ndarray, ref_per_plane: np.ndarray) -> np.ndarray:
     """Relative work of measuring a mesh placed by ``_on_bed`` at each plane: its cut's segments
-    (a vertex searched and a midpoint bounded each) and the reference's spans (the same), weighed
-    alike."""
+    (triangles crossing the plane) and the reference's spans, weighed by what each costs
+    (``REF_SPAN_COST``)."""
     n = len(heights)
     crossings = np.zeros(n + 1)
     if len(tr):
         first, stop = crossed_planes(v[:, 2][tr], heights)
         np.add.at(crossings, first, 1.0)
         np.add.at(crossings, stop, -1.0)
-    return 2.0 * np.cumsum(crossings)[:n] + 2.0 * ref_per_plane
+    return np.cumsum(crossings)[:n] + REF_SPAN_COST * ref_per_plane
 
 
 def _plane_ranges(cost: np.ndarray, chunk: float) -> list[tuple[int, int]]:
