@@ -314,6 +314,40 @@ def every_point_searched(cut, ref: SegmentSet, n_planes: int) -> tuple[np.ndarra
     return vertex_dev, np.maximum(cut_to_ref, max_per_plane(spans, ref.seg_plane, n_planes))
 
 
+def jittered_rings(rng, n_ring: int, z: np.ndarray, r0: float, amp: float, waves: int, noise: float):
+    """Wavy rings of ``n_ring`` vertices at heights ``z``, jittered in angle and radius."""
+    rings = []
+    for zk in z:
+        t = np.linspace(0, 2 * np.pi, n_ring, endpoint=False) + rng.uniform(0, 0.01)
+        r = r0 + amp * np.sin(waves * t + zk) + rng.normal(0, noise, n_ring)
+        rings.append(np.column_stack([r * np.cos(t), r * np.sin(t)]))
+    return rings
+
+
+def dense_reference(loops: list[list[np.ndarray]]) -> SegmentSet:
+    seg, plane = loops_to_segments(loops)
+    return SegmentSet(
+        seg, plane, curv=span_curvatures(loops, chord=1e-3), nxt=loop_successors(loops), chord=1e-3
+    )
+
+
+def compared_and_searched(cut, ref: SegmentSet, n_planes: int, monkeypatch, *, cut_only: bool = False):
+    """``compare``'s metrics and how many points it searched (in the cut's own set only, with
+    ``cut_only``)."""
+    searched = []
+    nearest = SegmentSet.nearest
+
+    def counting(self, pts, pl, **kw):
+        if not cut_only or self is not ref:
+            searched.append(len(pts))
+        return nearest(self, pts, pl, **kw)
+
+    monkeypatch.setattr(SegmentSet, "nearest", counting)
+    m = compare(cut, ref, np.ones(n_planes), n_planes)
+    monkeypatch.setattr(SegmentSet, "nearest", nearest)
+    return m, sum(searched)
+
+
 @pytest.mark.parametrize("n_ring", [24, 150, 900])  # coarse to finer than the reference's spans
 def test_measuring_only_the_points_that_can_matter_gives_the_same_maxima(n_ring, monkeypatch):
     """compare searches the k-d trees for the vertices, and for a midpoint only where its bound (the
@@ -323,13 +357,7 @@ def test_measuring_only_the_points_that_can_matter_gives_the_same_maxima(n_ring,
     one from a search for every point, while far fewer points are searched."""
     rng = np.random.default_rng(n_ring)
     heights = np.array([0.5, 1.5, 2.5, 3.5])
-    z = np.arange(5.0)
-    rings = []
-    for zk in z:
-        t = np.linspace(0, 2 * np.pi, n_ring, endpoint=False) + rng.uniform(0, 0.01)
-        r = 8 + 0.4 * np.sin(5 * t + zk) + rng.normal(0, 0.02, n_ring)
-        rings.append(np.column_stack([r * np.cos(t), r * np.sin(t)]))
-    v, tri = stacked(rings, z)
+    v, tri = stacked(jittered_rings(rng, n_ring, np.arange(5.0), 8.0, 0.4, 5, 0.02), np.arange(5.0))
     cut = cut_mesh(v, tri, heights)
     loops = []
     for j, h in enumerate(heights):
@@ -343,25 +371,13 @@ def test_measuring_only_the_points_that_can_matter_gives_the_same_maxima(n_ring,
             inward = -mid / np.linalg.norm(mid)
             plane_loops.append(circle(0.02, 40, *(mid + 0.07 * inward)))
         loops.append(plane_loops)
-    seg, plane = loops_to_segments(loops)
-    ref = SegmentSet(
-        seg, plane, curv=span_curvatures(loops, chord=1e-3), nxt=loop_successors(loops), chord=1e-3
-    )
-    searched = []
-    nearest = SegmentSet.nearest
-
-    def counting(self, pts, pl, **kw):
-        searched.append(len(pts))
-        return nearest(self, pts, pl, **kw)
-
-    monkeypatch.setattr(SegmentSet, "nearest", counting)
-    m = compare(cut, ref, np.ones(len(heights)), len(heights))
-    pruned = sum(searched)
-    searched.clear()
+    ref = dense_reference(loops)
+    m, pruned = compared_and_searched(cut, ref, len(heights), monkeypatch)
     vertex_dev, chord_dev = every_point_searched(cut, ref, len(heights))
     np.testing.assert_array_equal(m.vertex_dev, vertex_dev)
     np.testing.assert_array_equal(m.chord_dev, chord_dev)
-    assert pruned < 0.7 * sum(searched)
+    every = len(cut.vertices) + len(cut.seg) + 2 * len(ref.seg)  # what every_point_searched searches
+    assert pruned < 0.7 * every
 
 
 @pytest.mark.parametrize("n_ring", [6, 40, 300])  # cut segments covering ~330 (> _MAX_COVER) to ~7 spans
@@ -375,13 +391,7 @@ def test_reference_points_take_their_distances_from_the_cut_segments_round_them(
     cut's own k-d tree is searched for few of the reference's points."""
     rng = np.random.default_rng(n_ring)
     heights = np.array([0.5, 1.5, 2.5])
-    z = np.arange(4.0)
-    rings = []
-    for zk in z:
-        t = np.linspace(0, 2 * np.pi, n_ring, endpoint=False) + rng.uniform(0, 0.01)
-        r = 8.03 + 0.3 * np.sin(3 * t + zk) + rng.normal(0, 0.01, n_ring)
-        rings.append(np.column_stack([r * np.cos(t), r * np.sin(t)]))
-    v, tri = stacked(rings, z)
+    v, tri = stacked(jittered_rings(rng, n_ring, np.arange(4.0), 8.03, 0.3, 3, 0.01), np.arange(4.0))
     far_v, far_tri = prism(circle(1.0, 12, 30.0, 0.0), (2.2, 2.8))  # cut at plane 2 only
     cut = cut_mesh(np.vstack([v, far_v]), np.vstack([tri, far_tri + len(v)]), heights)
     loops = []
@@ -393,27 +403,14 @@ def test_reference_points_take_their_distances_from_the_cut_segments_round_them(
         if j == 1:
             plane_loops.append(circle(0.5, 300, -20.0, 0.0))
         loops.append(plane_loops)
-    seg, plane = loops_to_segments(loops)
-    ref = SegmentSet(
-        seg, plane, curv=span_curvatures(loops, chord=1e-3), nxt=loop_successors(loops), chord=1e-3
-    )
-    searched = []
-    nearest = SegmentSet.nearest
-
-    def counting(self, pts, pl, **kw):
-        if self is not ref:
-            searched.append(len(pts))
-        return nearest(self, pts, pl, **kw)
-
-    monkeypatch.setattr(SegmentSet, "nearest", counting)
-    m = compare(cut, ref, np.ones(len(heights)), len(heights))
-    pruned = sum(searched)
+    ref = dense_reference(loops)
+    m, pruned = compared_and_searched(cut, ref, len(heights), monkeypatch, cut_only=True)
     vertex_dev, chord_dev = every_point_searched(cut, ref, len(heights))
     np.testing.assert_array_equal(m.vertex_dev, vertex_dev)
     np.testing.assert_array_equal(m.chord_dev, chord_dev)
     assert chord_dev[1] > 10 and chord_dev[2] > 20  # the unmatched loops count
     if n_ring >= 40:  # (the wall's loop nearest to none of the cut's vertices is searched)
-        assert pruned < 0.4 * len(seg)
+        assert pruned < 0.4 * len(ref.seg)
 
 
 def test_self_crossings_find_the_pockets_a_loop_winds_round():
