@@ -515,6 +515,18 @@ def arc_midpoints(seg: np.ndarray, curv: np.ndarray) -> np.ndarray:
     return midpoints(seg) + off[:, None] * normal
 
 
+def _group_nearest(
+    dist: np.ndarray, group: np.ndarray, first: np.ndarray, candidate: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per group of consecutive rows (``group``: each row's group, ``first``: each group's first
+    row), the least distance and the candidate at it (of equal ones, the first)."""
+    best = np.minimum.reduceat(dist, first)
+    at = np.flatnonzero(dist == best[group])[::-1]
+    which = np.empty(len(first), dtype=np.int64)
+    which[group[at]] = candidate[at]
+    return best, which
+
+
 def _loop_runs(nxt: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
     """For successors ``nxt`` of closed loops each of consecutive spans (each span's successor the
     next one, the last's the loop's first), each span's loop's first span and its size; (None,
@@ -574,9 +586,10 @@ class SegmentSet:
         self._rows = np.column_stack(cols) if len(seg) else np.zeros((0, 7 if self.curved else 5))
         # largest offset of a curve from its span: |phi0|, |phi1| <= 1/8
         self.max_offset = float((self.len2 * np.abs(self.curv).sum(axis=1)).max() / 8.0) if len(seg) else 0.0
-        self._present = np.bincount(seg_plane) > 0 if len(seg) else np.zeros(0, dtype=bool)
+        self._count = np.bincount(seg_plane) if len(seg) else np.zeros(0, dtype=np.int64)  # per plane
+        self._present = self._count > 0
         self._tree: cKDTree | None = None
-        self._by_plane: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._by_plane: np.ndarray | None = None  # the segments in plane order (``_brute``)
         if not lazy and len(seg):
             self._index()
 
@@ -623,8 +636,7 @@ class SegmentSet:
         if not has.any():
             return out, idx
         if self._tree is None:
-            order, start, count = self._plane_order()
-            pairs = int(count[plane[has]].sum())
+            pairs = int(self._count[plane[has]].sum())
             if pairs <= max(_BRUTE_PAIRS_PER_SEGMENT * len(self.seg), _BRUTE_PAIRS_MIN):
                 out[has], idx[has] = self._brute(pts[has], plane[has])
                 return out, idx
@@ -672,28 +684,17 @@ class SegmentSet:
             bound = np.inf
         return d, idx
 
-    def _plane_order(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The segments in plane order, and each plane's first position and count in it."""
-        if self._by_plane is None:
-            order = np.argsort(self.seg_plane, kind="stable")
-            count = np.bincount(self.seg_plane)
-            self._by_plane = (order, np.cumsum(count) - count, count)
-        return self._by_plane
-
     def _brute(self, pts: np.ndarray, plane: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Nearest segment of each point (whose plane has segments) by trying every segment of its
         plane: for a few points, cheaper than building the k-d tree."""
-        order, start, count = self._plane_order()
-        c = count[plane]
+        if self._by_plane is None:
+            self._by_plane = np.argsort(self.seg_plane, kind="stable")
+        start = np.cumsum(self._count) - self._count  # each plane's first position in that order
+        c = self._count[plane]
         first = np.cumsum(c) - c
         q = np.repeat(np.arange(len(pts)), c)
-        s = order[np.repeat(start[plane] - first, c) + np.arange(len(q))]
-        dist = _point_curve(pts[q], self._rows[s])
-        d = np.minimum.reduceat(dist, first)
-        at = np.flatnonzero(dist == d[q])
-        idx = np.empty(len(pts), dtype=np.int64)
-        idx[q[at][::-1]] = s[at][::-1]  # of equal ones, the first
-        return d, idx
+        s = self._by_plane[np.repeat(start[plane] - first, c) + np.arange(len(q))]
+        return _group_nearest(_point_curve(pts[q], self._rows[s]), q, first, s)
 
     def distance_to(self, pts: np.ndarray, candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Distance of each point to the nearest of its candidate segments ((n, c) indices, -1 for
@@ -853,18 +854,15 @@ def _reference_to_cut(
         order = np.argsort(vertex, kind="stable")
         vertex, segment, dist = vertex[order], segment[order], dist[order]
         first = np.flatnonzero(np.concatenate([[True], vertex[1:] != vertex[:-1]]))
-        best = np.minimum.reduceat(dist, first)
         group = np.repeat(np.arange(len(first)), np.diff(np.append(first, len(vertex))))
-        at = np.flatnonzero(dist == best[group])[::-1]  # of equal ones, the first
-        near0[vertex[at]] = segment[at]
-        d0[vertex[first]] = best
+        d0[vertex[first]], near0[vertex[first]] = _group_nearest(dist, group, first, segment)
     exact = np.zeros(n_ref, dtype=bool)
     d0[~sel] = -np.inf  # not measured
 
-    def search(ids: np.ndarray) -> None:
-        ids = ids[~exact[ids]]
-        d0[ids], near0[ids] = cut_set.nearest(ref.seg[ids, 0], ref.seg_plane[ids], workers=workers)
-        exact[ids] = True
+    def search(vertices: np.ndarray) -> None:
+        v = vertices[~exact[vertices]]
+        d0[v], near0[v] = cut_set.nearest(ref.seg[v, 0], ref.seg_plane[v], workers=workers)
+        exact[v] = True
 
     ids = np.flatnonzero(sel)
     if not len(ids):
@@ -877,7 +875,13 @@ def _reference_to_cut(
     lower = max_per_plane(d0[ids][exact[ids]], plane[exact[ids]], n_planes)
     nxt = ref.nxt[ids]
     mid = arc_midpoints(ref.seg[ids], ref.curv[ids])
-    d_mid, _ = cut_set.distance_to(mid, cut_set.around(np.column_stack([near0[ids], near0[nxt]])))
+
+    def mid_bound(spans: np.ndarray) -> np.ndarray:
+        """The arc midpoints' distances to the nearest segments of their ends and neighbours."""
+        near = cut_set.around(np.column_stack([near0[ids[spans]], near0[nxt[spans]]]))
+        return cut_set.distance_to(mid[spans], near)[0]
+
+    d_mid = mid_bound(np.arange(len(ids)))
     bound = np.maximum(np.maximum(d0[ids], d0[nxt]), d_mid) + ref.chord
     need = np.flatnonzero(bound > lower[plane])  # spans that could reach their plane's largest
     ends = np.zeros(n_ref, dtype=bool)
@@ -889,10 +893,9 @@ def _reference_to_cut(
     # a midpoint's distance raises its span's peak: searched where the bound (also from its ends'
     # nearest segments as searched, where the search found others) could be the largest
     fm = d_mid[need]
-    moved = np.flatnonzero((near0[ids[need]] != before[ids[need]]) | (near0[nxt[need]] != before[nxt[need]]))
-    if len(moved):
-        again_near = cut_set.around(np.column_stack([near0[ids[need][moved]], near0[nxt[need][moved]]]))
-        fm[moved] = np.minimum(fm[moved], cut_set.distance_to(mid[need][moved], again_near)[0])
+    moved = (near0[ids[need]] != before[ids[need]]) | (near0[nxt[need]] != before[nxt[need]])
+    if moved.any():
+        fm[moved] = np.minimum(fm[moved], mid_bound(need[moved]))
     again = span_max(f0, fm, f1, ref.chord) > lower[plane[need]]
     fm[again] = cut_set.distance(mid[need][again], plane[need][again], workers=workers)
     peak = max_per_plane(span_max(f0, fm, f1, ref.chord), plane[need], n_planes)

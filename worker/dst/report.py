@@ -609,12 +609,15 @@ def _build_report(
         target = work / (helpers + 1)  # all ending together
         for _ in range(helpers):
             share: list[tuple[float, MeshInput, int, int]] = []
+            rest: list[tuple[float, MeshInput, int, int]] = []
             got = 0.0
-            for piece in list(pending):  # largest first, as long as they fit
-                if len(pending) > 1 and (not share or got + piece[0] <= target):
+            for piece in pending:  # largest first, as long as they fit (one left for this process)
+                if len(pending) - len(share) > 1 and (not share or got + piece[0] <= target):
                     share.append(piece)
-                    pending.remove(piece)
                     got += piece[0]
+                else:
+                    rest.append(piece)
+            pending[:] = rest
             if share:
                 measure(share, True)
 
