@@ -563,12 +563,12 @@ def _build_report(
     # fork and its first touches of the shared memory (the hemisphere's report took ~0.1 CPU-s
     # more with a helper for every core while OCCT worked and this process waited).
     pending: list[tuple[float, MeshInput, int, int]] = []
-    placed: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # once per mesh; the helpers share it
+    placed: dict[int, _Placed] = {}  # once per mesh; the helpers share it
 
     def add(ms: list[MeshInput]) -> None:
         for m in ms:
-            placed[id(m)] = _on_bed(m)
-        costs = {id(m): _plane_costs(*placed[id(m)], heights, ref_per_plane) for m in ms}
+            placed[id(m)] = _Placed(*_on_bed(m), heights)
+        costs = {id(m): _plane_costs(placed[id(m)], ref_per_plane) for m in ms}
         total = sum(float(c.sum()) for c in costs.values())
         n_tasks = max(1, min(tasks.limit, int(total // MIN_MEASURE_CHUNK))) if tasks.forked else 1
         chunk = total / (12 * n_tasks) if n_tasks > 1 else np.inf  # pieces small enough to balance
@@ -581,7 +581,7 @@ def _build_report(
 
     def measure(share: list[tuple[float, MeshInput, int, int]], forked: bool) -> None:
         args = (
-            [(*placed[id(m)], j0, j1, m.kind == "dst") for _, m, j0, j1 in share],
+            [(placed[id(m)], j0, j1, m.kind == "dst") for _, m, j0, j1 in share],
             heights,
             ref_set,
             ref_perimeter,
@@ -596,14 +596,15 @@ def _build_report(
         for k, (_, m, j0, _) in enumerate(share):
             measuring.setdefault(id(m), []).append((j0, task, k))
 
-    def hand_out() -> None:
-        # A helper for each core neither OCCT nor this process takes, with about its part of the
-        # waiting work (never less than MIN_MEASURE_CHUNK: a fork costs ~25 ms of CPU); this process
-        # takes the rest piece by piece, so the work ends at about the same time everywhere.
+    def hand_out(free: int) -> None:
+        # A helper for each core neither OCCT nor this process takes (``free`` tasks could start),
+        # with about its part of the waiting work (never less than MIN_MEASURE_CHUNK: a fork costs
+        # ~25 ms of CPU); this process takes the rest piece by piece, so the work ends at about the
+        # same time everywhere.
         if not tasks.forked or not pending:
             return
         work = sum(p[0] for p in pending)
-        helpers = min(tasks.free() - 1, int(work // MIN_MEASURE_CHUNK) - 1)
+        helpers = min(free - 1, int(work // MIN_MEASURE_CHUNK) - 1)
         if helpers < 1:
             return
         target = work / (helpers + 1)  # all ending together
@@ -625,10 +626,13 @@ def _build_report(
     add(todo)
     report("conventional meshes", 0.5)
     while True:
+        # free cores first: that reads what OCCT has sent, so a baseline it made just before it
+        # ended is among the work handed out with its core, not left to this process alone
+        free = tasks.free()
         if arrived := side.items_ready():  # the others as OCCT makes them
             todo.extend(arrived)
             add(arrived)
-        hand_out()
+        hand_out(free)
         if pending:
             measure([pending.pop(0)], False)
         elif side.done() or sum(m.kind == "baseline" for m in todo) == len(baselines):
@@ -796,9 +800,25 @@ def _on_bed(m: MeshInput) -> tuple[np.ndarray, np.ndarray]:
     return v, np.asarray(m.triangles, dtype=np.int64).reshape(-1, 3)
 
 
+class _Placed:
+    """A mesh as a slicer places it (``_on_bed``), with the planes each triangle crosses, so that
+    a range of planes is cut from its own triangles only."""
+
+    def __init__(self, vertices: np.ndarray, triangles: np.ndarray, heights: np.ndarray):
+        self.vertices, self.triangles = vertices, triangles
+        # per triangle: the planes first .. stop - 1 cut it (``crossed_planes``)
+        if len(triangles):
+            self.first, self.stop = crossed_planes(vertices[:, 2][triangles], heights)
+        else:
+            self.first = self.stop = np.zeros(0, dtype=np.int64)
+
+    def crossing(self, j0: int, j1: int) -> np.ndarray:
+        """The triangles some plane j0 .. j1 - 1 cuts."""
+        return np.flatnonzero((self.first < j1) & (self.stop > j0))
+
+
 def _measure_planes(
-    v: np.ndarray,
-    tr: np.ndarray,
+    mesh: _Placed,
     heights: np.ndarray,
     j0: int,
     j1: int,
@@ -809,11 +829,12 @@ def _measure_planes(
     workers: int,
     crossings: bool = False,
 ) -> _Measured:
-    """Cut a mesh placed by ``_on_bed`` at planes j0 .. j1 - 1 and measure the cuts (pure numpy:
-    runs in a forked helper). At a plane through a flat face the cut is measured against the exact
-    outlines above and below the face, and keeps the better match. ``crossings``: where the cut
-    crosses itself is looked for too."""
-    cut = offset_cut(cut_mesh(v, tr, heights[j0:j1]), j0, n_planes)
+    """Cut a placed mesh at planes j0 .. j1 - 1 and measure the cuts (pure numpy: runs in a forked
+    helper). At a plane through a flat face the cut is measured against the exact outlines above
+    and below the face, and keeps the better match. ``crossings``: where the cut crosses itself is
+    looked for too."""
+    v, tr = mesh.vertices, mesh.triangles
+    cut = offset_cut(cut_mesh(v, tr[mesh.crossing(j0, j1)], heights[j0:j1]), j0, n_planes)
     pockets = tuple(self_crossings(cut)) if crossings else ()
     met = compare(cut, ref_set, ref_perimeter, n_planes, workers=workers)
     side = np.zeros(n_planes, dtype=np.int8)
@@ -838,7 +859,7 @@ def _measure_planes(
 
 
 def _measure_pieces(
-    pieces: list[tuple[np.ndarray, np.ndarray, int, int, bool]],
+    pieces: list[tuple[_Placed, int, int, bool]],
     heights: np.ndarray,
     ref_set: SegmentSet,
     ref_perimeter: np.ndarray,
@@ -846,10 +867,10 @@ def _measure_pieces(
     n_planes: int,
     workers: int,
 ) -> list[_Measured]:
-    """``_measure_planes`` for each (vertices, triangles, j0, j1, crossings) piece, in one helper."""
+    """``_measure_planes`` for each (mesh, j0, j1, crossings) piece, in one helper."""
     return [
-        _measure_planes(v, tr, heights, j0, j1, ref_set, ref_perimeter, below, n_planes, workers, check)
-        for v, tr, j0, j1, check in pieces
+        _measure_planes(mesh, heights, j0, j1, ref_set, ref_perimeter, below, n_planes, workers, check)
+        for mesh, j0, j1, check in pieces
     ]
 
 
@@ -917,16 +938,13 @@ def _mesh_report(
     )
 
 
-def _plane_costs(v: np.ndarray, tr: np.ndarray, heights: np.ndarray, ref_per_plane: np.ndarray) -> np.ndarray:
-    """Relative work of measuring a mesh placed by ``_on_bed`` at each plane: its cut's segments
-    (triangles crossing the plane) and the reference's spans, weighed by what each costs
-    (``REF_SPAN_COST``)."""
-    n = len(heights)
+def _plane_costs(mesh: _Placed, ref_per_plane: np.ndarray) -> np.ndarray:
+    """Relative work of measuring a placed mesh at each plane: its cut's segments (triangles crossing
+    the plane) and the reference's spans, weighed by what each costs (``REF_SPAN_COST``)."""
+    n = len(ref_per_plane)
     crossings = np.zeros(n + 1)
-    if len(tr):
-        first, stop = crossed_planes(v[:, 2][tr], heights)
-        np.add.at(crossings, first, 1.0)
-        np.add.at(crossings, stop, -1.0)
+    np.add.at(crossings, mesh.first, 1.0)
+    np.add.at(crossings, mesh.stop, -1.0)
     return np.cumsum(crossings)[:n] + REF_SPAN_COST * ref_per_plane
 
 

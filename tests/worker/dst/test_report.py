@@ -941,7 +941,7 @@ def test_the_reports_own_process_measures_a_share_beside_its_helpers(hemisphere,
 
     def logged(pieces, *args):
         with open(log, "a") as fh:
-            fh.writelines(f"{os.getpid() == main} {len(tr)} {j0} {j1}\n" for _, tr, j0, j1, _ in pieces)
+            fh.writelines(f"{os.getpid() == main} {len(m.triangles)} {j0} {j1}\n" for m, j0, j1, _ in pieces)
         return real(pieces, *args)
 
     monkeypatch.setattr(report_mod, "_measure_pieces", logged)
