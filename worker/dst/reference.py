@@ -250,8 +250,9 @@ def _plane_shares(topo, n: int) -> list[list[int]]:
 def _sample_loops(mesh, topo, loop_ids: list[int], chord: float, segment_length: float) -> dict[int, Pair]:
     """The (dense loop, corner mask) of each of ``loop_ids``, by a sampler of their own."""
     pool = VertexPool()
+    # halving: about half the Newton solves of checking every span at the chord (see RingSampler)
     sampler = RingSampler(
-        mesh, topo, pool, segment_length=segment_length, chord_error=chord, keep_crossings=False
+        mesh, topo, pool, segment_length=segment_length, chord_error=chord, keep_crossings=False, halving=True
     )
     annulus = topo.comp_is_annulus
     ids = np.asarray(loop_ids, dtype=np.int64)

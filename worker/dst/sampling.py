@@ -55,6 +55,13 @@ from worker.dst.topomesh import TopoMesh
 # chord budget: the samples (midpoint, quarter points, the parabola through them) can miss the true
 # largest distance by a few per cent where the bend is off-centre.
 CHORD_FILL = 0.97
+# A sampler that is ``halving`` checks its segments at this many times the chord; one within that
+# but not within the chord is kept as its two halves, each within the chord where the curve is a
+# parabola (a quarter of the distance), and checked so
+HALVING_FACTOR = 4.0
+# ... where each half's distance is within this share of a quarter of the segment's: a bend whose
+# curvature changes linearly by up to ~2.3x along the segment (its one-sample peaks < 0.2% low)
+HALF_SAG_SPREAD = 0.2
 # A segment whose curve lies more than this share of its length from its chord turns through more
 # than ~67 degrees (a circular arc: 4 atan(2 sag / length)): no shallow arc, whose largest distance the
 # samples show. Such a segment is split while its sampled distance is above a quarter of the budget
@@ -157,6 +164,7 @@ class SamplingStats:
     kink_corners: int = 0  # corners placed where a section crosses a C0 line inside a face
     deep_bends: int = 0  # segments split for turning through more than ~67 degrees (DEEP_BEND_REL)
     quarter_checks: int = 0  # segments also checked at their quarter points (see _quarter_sags)
+    halved_segments: int = 0  # segments kept as their two halves (see RingSampler._halves)
     inflection_checks: int = 0  # segments checked again for an inflection inside (_inflected_segments)
     unchecked_segments: int = 0  # segments whose midpoint could not be placed (see _midpoints_off_the_path)
     off_trim_crossings: int = 0  # crossings whose root lay beyond their face's trim (see _drop_off_trim)
@@ -206,10 +214,16 @@ class RingSampler:
         segment_length: float,
         chord_error: float,
         keep_crossings: bool = True,
+        halving: bool = False,
     ):
         self.mesh, self.topo, self.pool = mesh, topo, pool
         self.seg_len = segment_length
         self.chord = chord_error
+        # ``halving``: segments checked at HALVING_FACTOR times the chord first, and one over the
+        # chord but within that kept as its two halves, each checked at its own midpoint (the
+        # segment's quarter point, solved already; see ``_halves``) instead of split and solved
+        # again: the report's dense reference at 1 um, 129.9k -> 72.0k Newton solves on the hemisphere
+        self.halving = halving
         self.trace_reach = max(EXCURSION_MAX_TRACE_MM, 100.0 * segment_length)  # a trace's longest
         # a pinned loop's crossings are kept (the kept triangles use them): False where only the
         # loops are wanted (the deviation report's reference), so that a stretch of them in the
@@ -1454,28 +1468,58 @@ class RingSampler:
 
         L, e = self.seg_len, self.chord
 
-        def refine(pending: tuple, forced: bool = False) -> bool:
+        finer: list[tuple] = []  # halves (``halving``) whose own check failed: checked as any other
+
+        def refine(pending: tuple, forced: bool = False, halving: bool = False) -> bool:
             # each round: the pending segments checked, the bad ones split into the next round's
-            # (``forced``: checked at their quarter points too, wherever their midpoints lie)
+            # (``forced``: checked at their quarter points too, wherever their midpoints lie;
+            # ``halving``: checked at HALVING_FACTOR times the chord, see ``_halves``)
             worst = ""
             split = False
+            budget = HALVING_FACTOR * e if halving else e
             for _ in range(MAX_REFINE_ROUNDS):
                 ri, sa, sb, pa, pb = pending
                 if not len(ri):
                     return split
-                mid, mid_ok, _ = solve(ri, 0.5 * (sa + sb))
+                mid, mid_ok, mid_uv = solve(ri, 0.5 * (sa + sb))
                 length = np.linalg.norm(pb - pa, axis=1)
-                self._midpoints_off_the_path(
-                    run_face[ri], run_z[ri], run_step[ri], mid, mid_ok, pa, pb, length, run_traced[ri]
+                off_path = self._midpoints_off_the_path(
+                    run_face[ri], run_z[ri], run_step[ri], mid, mid_ok, pa, pb, length, run_traced[ri], mid_uv
                 )
                 sag = np.where(mid_ok, point_segment_distance(np.nan_to_num(mid), pa, pb), 0.0)
-                self._quarter_sags(
-                    solve, sag, mid, mid_ok, length, pending, run_traced[ri], everywhere=forced
+                # midpoints placed by their path position in their chord's middle half (not solved
+                # again from the chord, not on a trace): where a segment may be halved (``_halves``)
+                t_mid = _chord_position(np.nan_to_num(mid), pa, pb)
+                halvable = ~off_path & ~run_traced[ri] & (t_mid >= 0.25) & (t_mid <= 0.75)
+                quarters, q_ok = self._quarter_sags(
+                    solve,
+                    sag,
+                    mid,
+                    mid_ok,
+                    length,
+                    pending,
+                    run_traced[ri],
+                    everywhere=forced,
+                    budget=budget,
+                    halvable=halvable,
                 )
-                bad = (length > L) | (sag > CHORD_FILL * e)
+                bad = (length > L) | (sag > CHORD_FILL * budget)
                 deep = ~bad & (sag > 0.25 * e) & (sag > DEEP_BEND_REL * length) & (length > 1e-9)
                 self.stats.deep_bends += int(deep.sum())
                 bad = (bad | deep) & (length > 1e-9)
+                if halving:
+                    over = np.flatnonzero(~bad & mid_ok & (sag > CHORD_FILL * e))
+                    if len(over):
+                        mid_s = 0.5 * (sa[over] + sb[over])
+                        kept, again = self._halves(
+                            pending, over, mid[over], mid_s, quarters[over], q_ok[over] & halvable[over, None]
+                        )
+                        run_all.append(ri[over][kept])
+                        s_all.append(mid_s[kept])
+                        xyz_all.append(mid[over][kept])
+                        uv_all.append(mid_uv[over][kept])
+                        vid_all.append(np.full(int(kept.sum()), -1, dtype=np.int64))
+                        finer.append(again)
                 forced = False  # (the parts of a segment checked everywhere: as any other)
                 # No exact point halfway: the plane is tangent to the surface along this segment (the
                 # section degenerates to a line or a point there). Keep the segment, count it.
@@ -1504,7 +1548,7 @@ class RingSampler:
                     [
                         np.full(len(b_idx), 2),
                         np.ceil(length[b_idx] / (L * SEGMENT_FILL)).astype(int),
-                        np.ceil(np.sqrt(sag[b_idx] / e) * 1.05).astype(int),
+                        np.ceil(np.sqrt(sag[b_idx] / budget) * 1.05).astype(int),
                     ]
                 )
                 m = np.minimum(m, MAX_SUBDIVISION)
@@ -1560,7 +1604,9 @@ class RingSampler:
             else:
                 raise TessellationError(f"section curves cannot meet the chord budget{worst}")
 
-        refine(pending)
+        refine(pending, halving=self.halving)
+        if finer:
+            refine(tuple(np.concatenate(parts) for parts in zip(*finer, strict=True)))
         # A segment whose curve turns one way near one end and the other way near the other has an
         # inflection inside, where its midpoint can lie on the chord with the curve off it on either
         # side: checked again at its quarter points (and split where it fails), until none is left.
@@ -1629,15 +1675,18 @@ class RingSampler:
         above = uv > box[:, [1, 3]] + tol
         return ((below | above) & chk).any(axis=1)
 
-    def _midpoints_off_the_path(self, face, zc, step, mid, mid_ok, pa, pb, length, traced) -> None:
-        """Solve again (in place) the midpoints that the seed path put off their segment's middle.
+    def _midpoints_off_the_path(
+        self, face, zc, step, mid, mid_ok, pa, pb, length, traced, mid_uv
+    ) -> np.ndarray:
+        """Solve again (in place, with their face parameters ``mid_uv``) the midpoints that the seed path put off their segment's middle.
 
         A seed path interpolated in (u, v) through a topology triangle with a corner at a pole of
         its face's parametrisation (or across a seam) can run anywhere on the surface: the midpoint
         then lands near an end of its segment, or nowhere, and the segment would pass unchecked (on
         bug29241 two 0.15 mm chords cut across a 0.07 mm boss). Those are solved again from the
         chord's middle projected on the face; a segment whose midpoint still cannot be placed in
-        its middle is counted (``unchecked_segments``) and reported.
+        its middle is counted (``unchecked_segments``) and reported. Returns the mask of the
+        midpoints solved again (found or not).
         """
         t = _chord_position(np.nan_to_num(mid), pa, pb)
         # A segment no longer than the chord budget is within it whatever its arc (up to a half
@@ -1651,14 +1700,17 @@ class RingSampler:
         long = length > self.chord
         off_middle = (t < MID_OFF_PATH) | (t > 1.0 - MID_OFF_PATH)
         off = np.flatnonzero((~mid_ok & long) | (mid_ok & off_middle & ~traced))
+        again = np.zeros(len(mid), dtype=bool)
         if not len(off):
-            return
-        p, ok, _ = self._solve_from_chord(
+            return again
+        again[off] = True
+        p, ok, uv = self._solve_from_chord(
             face[off], zc[off], step[off], 0.5 * (pa[off] + pb[off]), pa[off], pb[off]
         )
-        mid[off[ok]], mid_ok[off[ok]] = p[ok], True
+        mid[off[ok]], mid_ok[off[ok]], mid_uv[off[ok]] = p[ok], True, uv[ok]
         mid_ok[off[~ok & ~long[off]]] = False
         self.stats.unchecked_segments += int((~ok & long[off]).sum())
+        return again
 
     def _solve_from_chord(self, face, zc, step, guess, pa, pb) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Section points seeded from points ``guess`` on the chords pa-pb projected on their faces
@@ -1676,9 +1728,26 @@ class RingSampler:
         t = _chord_position(np.nan_to_num(p), pa, pb)
         return p, ok & (t > 0.0) & (t < 1.0), out_uv
 
-    def _quarter_sags(self, solve, sag, mid, mid_ok, length, pending, traced, *, everywhere=False) -> None:
+    def _quarter_sags(
+        self,
+        solve,
+        sag,
+        mid,
+        mid_ok,
+        length,
+        pending,
+        traced,
+        *,
+        everywhere=False,
+        budget=None,
+        halvable=None,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Raise ``sag`` (in place) to the curve's distance from the chord at the quarter points of
-        the segments where the midpoint alone may miss the largest one.
+        the segments where the midpoint alone may miss the largest one; returns the quarter points
+        ((n, 2, 3), NaN where not solved) and a mask of those solved on their segment. ``budget``:
+        the distance the segments are checked against (the chord, or more where ``halving``): the
+        quarter points are solved where the chord's own check would, and beyond the chord up to
+        the budget where the segment is ``halvable`` (elsewhere it is checked again at the chord).
 
         The points are placed by arc length along the topology path (``solve``), and where that path
         and the exact curve part ways (a bend tighter than the topology mesh resolves) the path's
@@ -1694,13 +1763,19 @@ class RingSampler:
         """
         ri, sa, sb, pa, pb = pending
         e = self.chord
+        budget = e if budget is None else budget
+        quarters = np.full((len(ri), 2, 3), np.nan)
+        q_ok = np.zeros((len(ri), 2), dtype=bool)
         t = _chord_position(np.nan_to_num(mid), pa, pb)
-        check = mid_ok & (sag <= e) & (length <= self.seg_len) & (length > 1e-9)
+        within = sag <= e
+        if budget > e:
+            within |= (sag <= budget) & halvable
+        check = mid_ok & within & (length <= self.seg_len) & (length > 1e-9)
         if not everywhere:  # (else: segments with an inflection, ``_inflected_segments``)
             check &= (sag > 0.25 * e) | (np.abs(t - 0.5) > 0.25)
         ci = np.flatnonzero(check)
         if not len(ci):
-            return
+            return quarters, q_ok
         q = np.concatenate([ci, ci])
         frac = np.repeat([0.25, 0.75], len(ci))
         pts, ok, _ = solve(ri[q], sa[q] + frac * (sb[q] - sa[q]))
@@ -1720,6 +1795,51 @@ class RingSampler:
         np.maximum.at(sag, q, q_sag)
         sag[ci] = np.maximum(sag[ci], peak)
         self.stats.quarter_checks += n
+        quarters[ci, 0], quarters[ci, 1] = pts[:n], pts[n:]
+        q_ok[ci, 0], q_ok[ci, 1] = ok[:n], ok[n:]
+        return quarters, q_ok
+
+    def _halves(self, pending, over, mid, mid_s, quarters, q_ok) -> tuple[np.ndarray, tuple]:
+        """Segments ``over`` of ``pending`` (within the ``halving`` budget, beyond the chord) kept as
+        their two halves, split at their midpoints ``mid`` (path positions ``mid_s``). Each half is
+        checked at its own midpoint, the segment's quarter point, as the chord's check checks a
+        segment whose midpoint lies under a quarter of the chord from it: that point in the half's
+        middle half, the parabola through it and the half's ends peaking within the chord, and no
+        turn through more than ~67 degrees (``DEEP_BEND_REL``). Only where both quarter points were
+        found on the segment (``q_ok``: false where the segment is not halvable, see ``refine``);
+        elsewhere the path and the curve may part ways, and the whole segment is checked at the
+        chord. Returns the mask of the segments whose midpoint is kept, and as pending segments to
+        check at the chord: the halves that fail their check and the whole segments not halved."""
+        ri, sa, sb, pa, pb = (x[over] for x in pending)
+        e = self.chord
+        kept = q_ok.all(axis=1)
+        # a parabola's halves lie a quarter of its distance from their chords: where the curve's are
+        # further from that (its bend changes along the segment), the halves' own one-sample checks are
+        # not trusted and they are checked as any segment
+        quarter = 0.25 * point_segment_distance(mid, pa, pb)
+        starts, ends = np.stack([pa, mid]), np.stack([mid, pb])  # (2, n, 3): the first and second halves
+        s_from, s_to = np.stack([sa, mid_s]), np.stack([mid_s, sb])
+        q = np.nan_to_num(np.swapaxes(quarters, 0, 1))
+        good = np.swapaxes(q_ok, 0, 1) & kept[None, :]
+        for h in range(2):
+            t = _chord_position(q[h], starts[h], ends[h])
+            dist = point_segment_distance(q[h], starts[h], ends[h])
+            half = np.linalg.norm(ends[h] - starts[h], axis=1)
+            centred = (t >= 0.25) & (t <= 0.75)
+            peak = dist / (4.0 * np.where(centred, t * (1.0 - t), 1.0))
+            parabolic = np.abs(dist - quarter) <= HALF_SAG_SPREAD * quarter
+            good[h] &= centred & parabolic & (peak <= CHORD_FILL * e)
+            good[h] &= ~((peak > 0.25 * e) & (peak > DEEP_BEND_REL * half))
+        self.stats.halved_segments += int(kept.sum())
+        again_h, again_i = np.nonzero(~good & kept[None, :])
+        whole = np.flatnonzero(~kept)
+        return kept, (
+            np.concatenate([ri[again_i], ri[whole]]),
+            np.concatenate([s_from[again_h, again_i], sa[whole]]),
+            np.concatenate([s_to[again_h, again_i], sb[whole]]),
+            np.concatenate([starts[again_h, again_i], pa[whole]]),
+            np.concatenate([ends[again_h, again_i], pb[whole]]),
+        )
 
     def _record_gaps(self, gap, length, pa, pb, z, face) -> None:
         """Count the segments ``gap`` (kept over budget: no exact point between their ends), and keep

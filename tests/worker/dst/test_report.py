@@ -987,3 +987,102 @@ def test_a_measuring_helper_that_dies_is_a_resource_error(hemisphere, monkeypatc
     with pytest.raises(ResourceLimitExceeded, match=r"signal 9.*--processes 1") as info:
         build_report(mesh.part, SliceParams(layer_height=0.2), file_name=str(path), dst=mesh, baselines=[])
     assert info.value.code == "resource_limit"
+
+
+def _turned_torus_section_points(m: np.ndarray, z: float, n: int, major: float, minor: float) -> np.ndarray:
+    """Points (k, 2) of the exact section at world height ``z`` of the torus (``major``, ``minor``,
+    axis z at the origin) turned by the matrix ``m``, in closed form: on each of ``n`` circles of
+    constant u, and of constant v, where the plane cuts it (a u-circle where the section runs along
+    v, a v-circle where it runs along u, so that the points lie close together all along it)."""
+    a = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    out = []
+
+    def on_torus(u, v):
+        ring = major + minor * np.cos(v)
+        return np.column_stack([ring * np.cos(u), ring * np.sin(u), minor * np.sin(v)])
+
+    # u fixed: (major + minor cos v) c + m22 minor sin v = z, c = m20 cos u + m21 sin u
+    c = m[2, 0] * np.cos(a) + m[2, 1] * np.sin(a)
+    amp, phase = np.hypot(minor * c, m[2, 2] * minor), np.arctan2(m[2, 2] * minor, minor * c)
+    ratio = (z - major * c) / amp
+    for sign in (-1.0, 1.0):
+        ok = np.abs(ratio) <= 1.0
+        v = phase[ok] + sign * np.arccos(ratio[ok])
+        u = a[ok]
+        out.append(on_torus(u, v))
+    # v fixed: (major + minor cos v) hypot(m20, m21) cos(u - psi) = z - m22 minor sin v
+    k = np.hypot(m[2, 0], m[2, 1])
+    psi = math.atan2(m[2, 1], m[2, 0])
+    ratio = (z - m[2, 2] * minor * np.sin(a)) / ((major + minor * np.cos(a)) * k)
+    for sign in (-1.0, 1.0):
+        ok = np.abs(ratio) <= 1.0
+        u = psi + sign * np.arccos(ratio[ok])
+        v = a[ok]
+        out.append(on_torus(u, v))
+    world = np.concatenate(out) @ m.T
+    assert np.allclose(world[:, 2], z, atol=1e-9)
+    return world[:, :2]
+
+
+def _distance_to_loops(points: np.ndarray, loops: list[np.ndarray]) -> np.ndarray:
+    """Each point's distance to the nearest segment of the closed polylines ``loops`` (among the
+    eight whose midpoints lie nearest it: the points lie along the loops, whose spans are short)."""
+    a = np.concatenate(loops)
+    b = np.concatenate([np.roll(lp, -1, axis=0) for lp in loops])
+    _, idx = cKDTree(0.5 * (a + b)).query(points, k=8)
+    pa, ab = a[idx], b[idx] - a[idx]
+    rel = points[:, None, :] - pa
+    t = np.clip((rel * ab).sum(axis=2) / (ab * ab).sum(axis=2), 0.0, 1.0)
+    return np.linalg.norm(rel - t[..., None] * ab, axis=2).min(axis=1)
+
+
+def test_the_reference_is_within_its_chord_of_a_turned_torus_in_closed_form(torus, monkeypatch):
+    """The report's exact reference (1 um chord, its spans halved where a segment is within 4 um:
+    see ``RingSampler._halves``) of a torus turned to odd angles, whose sections bend more and less
+    and inflect, against the exact sections in closed form (independent of the sampler): every
+    exact point lies within the chord of the reference's polylines, and every reference vertex lies
+    on the torus and on its plane."""
+    import worker.dst.reference as reference_mod
+    from worker.dst.pipeline import bbox_diagonal, topo_deflection
+    from worker.dst.report import REFERENCE_CHORD_MM, REFERENCE_SEGMENT_MM
+    from worker.dst.step_io import orient, rotation_matrix
+
+    made = []
+
+    class Counted(reference_mod.RingSampler):
+        def __init__(self, *args, **kw):
+            super().__init__(*args, **kw)
+            made.append(self)
+
+    monkeypatch.setattr(reference_mod, "RingSampler", Counted)
+    path, _, _ = torus
+    angles = (45.0, 143.0, 99.2)
+    part = orient(read_step(path), angles)
+    diag, _ = bbox_diagonal(part)
+    heights = np.arange(0.1, 40.0, 1.7)
+    ref = exact_sections(
+        part,
+        heights,
+        chord=REFERENCE_CHORD_MM,
+        segment_length=REFERENCE_SEGMENT_MM,
+        deflection=0.5 * topo_deflection(diag),
+        helper=False,
+    )
+    assert sum(s.stats.halved_segments for s in made) > 1000  # the halving was used
+    m = rotation_matrix(angles)
+    cut = 0
+    worst = 0.0
+    for j, h in enumerate(ref.heights):
+        z = ref.zmin + float(h)
+        exact = _turned_torus_section_points(m, z, 20_000, 15.0, 5.0)
+        if not len(exact):
+            assert not ref.loops[j]
+            continue
+        cut += 1
+        worst = max(worst, float(_distance_to_loops(exact, ref.loops[j]).max()))
+        xy = np.concatenate(ref.loops[j])
+        own = np.column_stack([xy, np.full(len(xy), z)]) @ m  # back in the torus's frame
+        ring = np.hypot(own[:, 0], own[:, 1]) - 15.0
+        np.testing.assert_allclose(np.hypot(ring, own[:, 2]), 5.0, atol=1e-7)
+    assert cut >= 15
+    assert worst <= REFERENCE_CHORD_MM

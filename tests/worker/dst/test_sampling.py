@@ -10,7 +10,7 @@ from OCP.GeomAbs import GeomAbs_Cone, GeomAbs_Plane
 
 from worker.dst import constants as C
 from worker.dst.pipeline import bbox_diagonal, topo_deflection
-from worker.dst.sampling import RingSampler, VertexPool, _inflected_segments
+from worker.dst.sampling import RingSampler, VertexPool, _inflected_segments, point_segment_distance
 from worker.dst.sections import cut_topology
 from worker.dst.step_io import read_step
 from worker.dst.topomesh import build_topomesh
@@ -87,6 +87,7 @@ def test_midpoints_the_seed_path_left_off_their_segment_are_solved_from_the_chor
     seg_b = np.array([c[3] for c in cases])
     length = np.linalg.norm(seg_b - seg_a, axis=1)
     before = sampler.stats.unchecked_segments
+    mid_uv = np.full((len(cases), 2), -7.0)
     sampler._midpoints_off_the_path(
         face,
         np.full(len(cases), Z),
@@ -97,13 +98,18 @@ def test_midpoints_the_seed_path_left_off_their_segment_are_solved_from_the_chor
         seg_b,
         length,
         np.arange(len(cases)) == len(cases) - 1,
+        mid_uv,
     )
-    # the first two: on the exact circle, at the chord's middle (the arc's midpoint)
+    # the first two: on the exact circle, at the chord's middle (the arc's midpoint), with the face
+    # parameters of where they now are
     for i in (0, 1):
         assert mid_ok[i]
         assert math.hypot(mid[i, 0], mid[i, 1]) == pytest.approx(R_Z, abs=1e-6)
         assert mid[i, 2] == pytest.approx(Z, abs=C.LEVEL_TOL_MM)
         assert math.atan2(mid[i, 1], mid[i, 0]) == pytest.approx(0.5 * (a0 + a1), abs=1e-6)
+        at = sampler.mesh.faces[cone].ad.Value(*mid_uv[i])
+        assert np.allclose(at.Coord(), mid[i], atol=1e-9)
+    np.testing.assert_array_equal(mid_uv[[2, 3, 6, 7]], -7.0)  # the others' are left as they were
     # the one on the base face: no point of that face on the plane, counted
     assert sampler.stats.unchecked_segments == before + 1
     np.testing.assert_array_equal(mid[2], near_end)
@@ -546,3 +552,59 @@ def test_a_segments_largest_distance_is_estimated_where_its_bend_is_off_centre()
     x, y = np.sin(ang), np.cos(ang)
     t_s = (x + math.sin(half)) / (2.0 * math.sin(half))
     assert peak(t_s, y - math.cos(half)) == pytest.approx(1.0 - math.cos(half), rel=5e-3)
+
+
+def _bending_curve(k0: float, k1: float, length: float, at: np.ndarray) -> np.ndarray:
+    """Points (len(at), 3) at arc lengths ``at`` of a plane curve at z = Z whose curvature goes
+    linearly from ``k0`` to ``k1`` along ``length`` (a circle where they are equal), in closed form
+    for its tangent angle and by a fine quadrature for its position."""
+    s = np.linspace(0.0, length, 200_001)
+    angle = k0 * s + 0.5 * (k1 - k0) * s**2 / length
+    step = np.diff(s)
+    mid = 0.5 * (angle[1:] + angle[:-1])
+    x = np.concatenate([[0.0], np.cumsum(np.cos(mid) * step)])
+    y = np.concatenate([[0.0], np.cumsum(np.sin(mid) * step)])
+    return np.column_stack([np.interp(at, s, x), np.interp(at, s, y), np.full(len(at), Z)])
+
+
+def test_a_segment_within_the_halving_budget_is_kept_as_its_halves_where_they_are_parabolic(cone_sampler):
+    """``_halves`` (the report's reference): a segment 1.5-2.4x the chord (0.01 mm) from its curve
+    is kept as its two halves, each checked at its own midpoint (the segment's quarter point). An
+    arc of a circle: both halves pass (a quarter of the distance each), no point more. A bend whose
+    curvature grows 5x along the segment: each half passes a one-sample check (0.004 and 0.008 mm)
+    but lies a third off a quarter of the segment's distance (a parabola's halves lie at a quarter),
+    so both are checked again as any segment, between their own ends. A segment one of whose quarter
+    points was not found on it is checked again whole, its midpoint not kept."""
+    sampler, _, _ = cone_sampler
+    e = sampler.chord
+    length = 0.8
+    at = length * np.array([0.0, 0.25, 0.5, 0.75, 1.0])
+    curves = [
+        _bending_curve(0.25, 0.25, length, at),
+        _bending_curve(0.1, 0.5, length, at),
+        _bending_curve(0.25, 0.25, length, at),
+    ]
+    pts = np.stack(curves)  # (3 segments, 5 points, 3)
+    sag = [float(point_segment_distance(p[2:3], p[0:1], p[4:5])[0]) for p in pts]
+    assert all(1.5 * e < s < 2.5 * e for s in sag)
+    n = len(pts)
+    pending = (np.array([0, 1, 2]), np.zeros(n), np.full(n, length), pts[:, 0], pts[:, 4])
+    q_ok = np.array([[True, True], [True, True], [True, False]])
+    before = sampler.stats.halved_segments
+    kept, again = sampler._halves(
+        pending, np.arange(n), pts[:, 2], np.full(n, 0.5 * length), pts[:, [1, 3]], q_ok
+    )
+    assert kept.tolist() == [True, True, False]
+    assert sampler.stats.halved_segments == before + 2
+    ri, sa, sb, pa, pb = again
+    # the bending segment's two halves, then the third segment whole
+    assert ri.tolist() == [1, 1, 2]
+    np.testing.assert_allclose(np.column_stack([sa, sb]), [[0.0, 0.4], [0.4, 0.8], [0.0, 0.8]])
+    np.testing.assert_array_equal(pa, [pts[1, 0], pts[1, 2], pts[2, 0]])
+    np.testing.assert_array_equal(pb, [pts[1, 2], pts[1, 4], pts[2, 4]])
+    # the arc's halves are within the chord everywhere (dense points of the exact arc)
+    dense = _bending_curve(0.25, 0.25, length, np.linspace(0.0, length, 2001))
+    half_a = point_segment_distance(
+        dense[:1001], np.repeat(pts[0, :1], 1001, 0), np.repeat(pts[0, 2:3], 1001, 0)
+    )
+    assert half_a.max() < e
