@@ -84,6 +84,17 @@ KINK_MARGIN_REL = 1e-9
 KINK_MIN_SPACING_REL = 1e-9  # a kink this close to a run's end (relative to its length) is that end
 # rounds of the check of segments with an inflection inside (each: those the last round split)
 MAX_INFLECTION_ROUNDS = 4
+# A shallow arc within the chord budget e leaves its chord at ~4 e / L (L: the chord's length). A run's
+# end segment whose curve leaves the corner at more than this many times that (by its own face's
+# tangent there) hides a bend next to the corner that its midpoint does not show: checked at its
+# quarter points and split where it fails, round after round on the new end segments
+END_BEND_FACTOR = 1.5
+MAX_END_BEND_ROUNDS = 6
+END_TANGENT_ITER = 6  # Gauss-Newton steps placing a run's end vertex on its face (from its seed path)
+END_TANGENT_TOL_MM = (
+    0.01  # ... where it lies within this of the face (a file's tolerance): the face's tangent
+)
+END_TANGENT_MIN_SLOPE = 1e-3  # a face steeper than this (normal's horizontal share) has a section tangent
 MAX_REFINE_ROUNDS = 40  # halving a segment 24 times takes 1 m down to 60 nm: still failing means broken
 # A sampled ring turning by more than this (cosine) at a vertex inside a face is checked for an
 # excursion of the curve its segments skip (``_excursion_runs``); a correct sampling turns that much
@@ -166,6 +177,7 @@ class SamplingStats:
     quarter_checks: int = 0  # segments also checked at their quarter points (see _quarter_sags)
     halved_segments: int = 0  # segments kept as their two halves (see RingSampler._halves)
     inflection_checks: int = 0  # segments checked again for an inflection inside (_inflected_segments)
+    end_bend_checks: int = 0  # run end segments checked again for a bend at their corner (END_BEND_FACTOR)
     unchecked_segments: int = 0  # segments whose midpoint could not be placed (see _midpoints_off_the_path)
     off_trim_crossings: int = 0  # crossings whose root lay beyond their face's trim (see _drop_off_trim)
     max_gap_mm: float = 0.0
@@ -1607,6 +1619,29 @@ class RingSampler:
         refine(pending, halving=self.halving)
         if finer:
             refine(tuple(np.concatenate(parts) for parts in zip(*finer, strict=True)))
+        # A run's end segment whose curve leaves the corner more steeply than a shallow arc within
+        # the budget leaves its chord hides a bend next to the corner (boxed_sphere turned (36.3,
+        # -159.6, 99.5) at z = 8.5: a 0.595 mm segment from a corner, 4 um from its midpoint, its
+        # curve 0.0258 mm away 0.1 mm from the corner, where it left at 0.44 rad): checked at its
+        # quarter points, and its new end segments again, until they leave as a shallow arc would.
+        tangents = self._end_tangents(runs)
+        forced: set[tuple[int, float, float]] = set()
+        for _ in range(MAX_END_BEND_ROUNDS):
+            ri, s_, xyz = np.concatenate(run_all), np.concatenate(s_all), np.concatenate(xyz_all)
+            order = np.lexsort((s_, ri))
+            a, b = _end_bend_segments(ri[order], xyz[order], tangents, e)
+            a, b = order[a], order[b]
+            new = [
+                k
+                for k, key in enumerate(zip(ri[a].tolist(), s_[a].tolist(), s_[b].tolist(), strict=True))
+                if key not in forced
+            ]
+            if not new:
+                break
+            a, b = a[new], b[new]
+            forced.update(zip(ri[a].tolist(), s_[a].tolist(), s_[b].tolist(), strict=True))
+            self.stats.end_bend_checks += len(a)
+            refine((ri[a], s_[a], s_[b], xyz[a], xyz[b]), forced=True)
         # A segment whose curve turns one way near one end and the other way near the other has an
         # inflection inside, where its midpoint can lie on the chord with the curve off it on either
         # side: checked again at its quarter points (and split where it fails), until none is left.
@@ -1674,6 +1709,45 @@ class RingSampler:
         below = uv < box[:, [0, 2]] - tol
         above = uv > box[:, [1, 3]] + tol
         return ((below | above) & chk).any(axis=1)
+
+    def _end_tangents(self, runs: list[_Run]) -> np.ndarray:
+        """(n_runs, 2, 2): the unit xy tangent (either sense) of each run's section curve at its start
+        and at its end vertex, on the run's own face (its normal's horizontal part turned a quarter);
+        NaN where the vertex is not found on the face (a file's tolerance) or the face is nearly
+        horizontal there. The vertices' (u, v) by batched Gauss-Newton from the seed path's ends."""
+        n = len(runs)
+        out = np.full((n, 2, 2), np.nan)
+        if not n:
+            return out
+        face = np.repeat([r.face for r in runs], 2)
+        target = self.pool.xyz[np.array([[r.start, r.end] for r in runs]).ravel()]
+        uv = np.array([[r.uv[0], r.uv[-1]] for r in runs]).reshape(-1, 2)
+        step = np.repeat([r.max_step for r in runs], 2)
+        p, du, dv = gp_Pnt(), gp_Vec(), gp_Vec()
+        u, v = uv[:, 0].copy(), uv[:, 1].copy()
+        for _ in range(END_TANGENT_ITER):
+            res = self._d1(face, u, v, self._ads, p, du, dv)
+            r = res[:, :3] - target
+            su, sv = res[:, 3:6], res[:, 6:9]
+            a11, a12, a22 = (su * su).sum(1), (su * sv).sum(1), (sv * sv).sum(1)
+            b1, b2 = (su * r).sum(1), (sv * r).sum(1)
+            det = a11 * a22 - a12 * a12
+            ok = det > 0
+            det = np.where(ok, det, 1.0)
+            stu, stv = -(a22 * b1 - a12 * b2) / det, -(a11 * b2 - a12 * b1) / det
+            norm = np.hypot(stu, stv)
+            scale = np.where(ok, np.minimum(1.0, step / np.where(norm > 0, norm, 1.0)), 0.0)
+            u += stu * scale
+            v += stv * scale
+        res = self._d1(face, u, v, self._ads, p, du, dv)
+        normal = np.cross(res[:, 3:6], res[:, 6:9])
+        on = np.linalg.norm(res[:, :3] - target, axis=1) <= END_TANGENT_TOL_MM
+        size = np.linalg.norm(normal, axis=1)
+        flat = np.hypot(normal[:, 0], normal[:, 1])
+        ok = on & (flat > END_TANGENT_MIN_SLOPE * size)
+        t = np.column_stack([normal[:, 1], -normal[:, 0]]) / np.where(flat > 0, flat, 1.0)[:, None]
+        t[~ok] = np.nan
+        return t.reshape(n, 2, 2)
 
     def _midpoints_off_the_path(
         self, face, zc, step, mid, mid_ok, pa, pb, length, traced, mid_uv
@@ -2111,6 +2185,32 @@ def _splice(ring: list[int], pieces: list[tuple[int, int, list[int]]]) -> list[i
             k = (k + 1) % n
         if k == start:
             return out
+
+
+def _end_bend_segments(
+    ri: np.ndarray, xyz: np.ndarray, tangents: np.ndarray, chord: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The end segments (first and last points, as indices into ``ri``/``xyz``: points sorted by
+    run and arc length) of runs whose curve leaves the corner at their end (``tangents``: (n_runs, 2,
+    2) at start and end, NaN where unknown) at more than END_BEND_FACTOR times the angle a shallow
+    arc within ``chord`` of its chord makes with it (4 chord / L). Segments no longer than the chord
+    are within it whatever their arc."""
+    if len(ri) < 2:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    first = np.flatnonzero(np.concatenate([[True], ri[1:] != ri[:-1]]))
+    last = np.concatenate([first[1:], [len(ri)]]) - 1
+    two = last > first  # runs with a segment
+    first, last = first[two], last[two]
+    a = np.concatenate([first, last - 1])
+    b = np.concatenate([first + 1, last])
+    at = np.concatenate([tangents[ri[first], 0], tangents[ri[last], 1]])
+    c = xyz[b, :2] - xyz[a, :2]
+    length = np.hypot(c[:, 0], c[:, 1])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sin = np.abs(at[:, 0] * c[:, 1] - at[:, 1] * c[:, 0]) / length
+        steep = (length > chord) & (sin > END_BEND_FACTOR * 4.0 * chord / length)
+    steep &= np.isfinite(sin)
+    return a[steep], b[steep]
 
 
 def _run_successors(first: np.ndarray, last: np.ndarray) -> np.ndarray:

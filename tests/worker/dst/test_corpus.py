@@ -495,6 +495,26 @@ def test_off_centre_bends_are_within_budget_and_a_loose_files_offsets_are_put_do
 
 
 @pytest.mark.slow
+def test_a_bend_next_to_a_corner_that_the_end_segments_midpoint_hides_is_split():
+    """boxed_sphere turned to (36.3, -159.6, 99.5), z = 8.5: a 0.595 mm ring segment from a corner
+    had its midpoint 4 um from its chord (no quarter check below a quarter of the budget), while its
+    curve left the corner 0.44 rad off the chord and bent back, 0.0258 mm from it 0.1 mm along, over
+    the 0.025 budget. A run's end segment whose curve leaves the corner (by its face's tangent there)
+    more steeply than an arc within the budget leaves its chord is checked at its quarter points and
+    split (``stats['end_bend_checks']``): every exact point of the report's reference is within the
+    budget of the ring."""
+    path = CORPUS / "assembly" / "boxed_sphere.step"
+    if not path.is_file():
+        pytest.skip(f"the shared STEP corpus is not beside this checkout ({CORPUS})")
+    params = _params(path).model_copy(update=dict(zip(ROTATION_FIELDS, (36.3, -159.6, 99.5), strict=True)))
+    mesh = slice_step(path, params)
+    assert mesh.stats["end_bend_checks"] > 0
+    d, plane, pts = _exact_points_from_ring(mesh, mesh.planes.section_z)
+    worst = int(np.argmax(d))
+    assert d[worst] <= params.chord_error + 1e-6, (mesh.planes.z[plane[worst]], d[worst], pts[worst])
+
+
+@pytest.mark.slow
 def test_a_segment_round_a_deep_bend_is_split_whatever_its_samples_say():
     """Ventilator turned to (-135.2, -164.2, -177.2), first plane (z = 0.1): a 0.117 mm ring segment
     round a ~0.035 mm bend was sampled at 0.022 mm at its midpoint, one of its quarter points landed

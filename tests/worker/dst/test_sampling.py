@@ -608,3 +608,57 @@ def test_a_segment_within_the_halving_budget_is_kept_as_its_halves_where_they_ar
         dense[:1001], np.repeat(pts[0, :1], 1001, 0), np.repeat(pts[0, 2:3], 1001, 0)
     )
     assert half_a.max() < e
+
+
+def test_a_runs_end_tangent_is_its_faces_section_tangent_at_the_corner(cone_sampler):
+    """``_end_tangents``: each run's start and end vertex placed on the run's own face from its seed
+    path's ends (here seeds 0.05 off in (u, v)), and the section's tangent there (either sense): on
+    the cone at z = 5, the circle's tangent at each point; NaN for a vertex off its face."""
+    from worker.dst.sampling import _Run
+
+    sampler, cone, _ = cone_sampler
+    ev = sampler.mesh.faces[cone]
+    angles = (0.3, 2.0, 4.1)
+    points = [_on_circle(a) for a in angles] + [_on_circle(5.0) * np.array([1.05, 1.05, 1.0])]
+    vids = [sampler.pool.add(tuple(p), 0) for p in points]
+    seeds = [np.array(ev.uv_near(tuple(_on_circle(a)), (0.0, 0.0))) + 0.05 for a in (*angles, 5.0)]
+    runs = [
+        _Run(cone, np.array([0.0, 1.0]), np.array([seeds[i], seeds[j]]), 0.5, vids[i], vids[j], 1, Z, 0)
+        for i, j in ((0, 1), (2, 3))
+    ]
+    got = sampler._end_tangents(runs)
+    for k, a in enumerate(angles):
+        t = got[k // 2, k % 2]
+        assert abs(t[0] * _tangent(a)[1] - t[1] * _tangent(a)[0]) < 1e-9  # parallel
+        assert np.hypot(*t) == pytest.approx(1.0)
+    assert np.isnan(got[1, 1]).all()  # 0.37 mm off the cone
+
+
+def test_an_end_segment_leaving_its_corner_steeper_than_a_shallow_arc_is_told():
+    """``_end_bend_segments``: a run's first or last segment whose curve leaves the corner at more
+    than 1.5 times the angle a shallow arc within the chord makes with its chord (4 e / L). Runs of
+    a circle's arc, 0.6 mm segments at a 0.025 mm chord: an arc at the budget (tangent 0.167 rad
+    off the chord) is not; the same points with the start tangent turned 0.44 rad off (the bend
+    next to boxed_sphere's corner) are, at the start only; a segment no longer than the chord, or an
+    unknown tangent (NaN), is not."""
+    from worker.dst.sampling import _end_bend_segments
+
+    e, length = 0.025, 0.6
+    radius = length**2 / (8.0 * e)  # the arc whose sag over a 0.6 mm chord is the budget
+    half = math.asin(0.5 * length / radius)  # its end tangents' angle with the chord
+    assert half == pytest.approx(4.0 * e / length, rel=0.02)
+    ang = np.linspace(-3.0 * half, 3.0 * half, 4)  # three 0.6 mm chords
+    arc = np.column_stack([radius * np.sin(ang), radius * np.cos(ang), np.zeros(4)])
+    ri = np.zeros(4, dtype=np.int64)
+    start_t = np.array([math.cos(ang[0]), -math.sin(ang[0])])
+    end_t = np.array([math.cos(ang[-1]), -math.sin(ang[-1])])
+    tangents = np.array([[start_t, end_t]])
+    a, b = _end_bend_segments(ri, arc, tangents, e)
+    assert len(a) == 0
+    turn = 0.44
+    steep = np.array([math.cos(ang[0] - turn), -math.sin(ang[0] - turn)])
+    a, b = _end_bend_segments(ri, arc, np.array([[steep, end_t]]), e)
+    assert a.tolist() == [0] and b.tolist() == [1]
+    short = arc * (0.9 * e / length)  # every segment shorter than the chord
+    assert len(_end_bend_segments(ri, short, np.array([[steep, end_t]]), e)[0]) == 0
+    assert len(_end_bend_segments(ri, arc, np.array([[[np.nan, np.nan], end_t]]), e)[0]) == 0
