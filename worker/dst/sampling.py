@@ -1624,11 +1624,18 @@ class RingSampler:
         # -159.6, 99.5) at z = 8.5: a 0.595 mm segment from a corner, 4 um from its midpoint, its
         # curve 0.0258 mm away 0.1 mm from the corner, where it left at 0.44 rad): checked at its
         # quarter points, and its new end segments again, until they leave as a shallow arc would.
-        tangents = self._end_tangents(runs)
+        tangents = np.full((n_runs, 2, 2), np.nan)  # at each run's start and end, where needed
+        known = np.zeros((n_runs, 2), dtype=bool)
         forced: set[tuple[int, float, float]] = set()
         for _ in range(MAX_END_BEND_ROUNDS):
             ri, s_, xyz = np.concatenate(run_all), np.concatenate(s_all), np.concatenate(xyz_all)
             order = np.lexsort((s_, ri))
+            # the tangents at the ends of segments long enough to leave them too steeply
+            run, end = _end_segments(ri[order], xyz[order], END_BEND_FACTOR * 4.0 * e)[2:]
+            todo = ~known[run, end]
+            run, end = run[todo], end[todo]
+            tangents[run, end] = self._end_tangents([runs[k] for k in run.tolist()], end)
+            known[run, end] = True
             a, b = _end_bend_segments(ri[order], xyz[order], tangents, e)
             a, b = order[a], order[b]
             new = [
@@ -1710,25 +1717,30 @@ class RingSampler:
         above = uv > box[:, [1, 3]] + tol
         return ((below | above) & chk).any(axis=1)
 
-    def _end_tangents(self, runs: list[_Run]) -> np.ndarray:
-        """(n_runs, 2, 2): the unit xy tangent (either sense) of each run's section curve at its start
-        and at its end vertex, on the run's own face (its normal's horizontal part turned a quarter);
-        NaN where the vertex is not found on the face (a file's tolerance) or the face is nearly
-        horizontal there. The vertices' (u, v) by batched Gauss-Newton from the seed path's ends."""
-        n = len(runs)
-        out = np.full((n, 2, 2), np.nan)
-        if not n:
+    def _end_tangents(self, runs: list[_Run], end: np.ndarray) -> np.ndarray:
+        """(k, 2): the unit xy tangent (either sense) of each of the runs' section curve at its start
+        (``end`` 0) or end vertex (1), on the run's own face (its normal's horizontal part turned a
+        quarter); NaN where the vertex is not found within END_TANGENT_TOL_MM of the face (a file's
+        tolerance) or the face is nearly horizontal there. The vertices' (u, v) by batched
+        Gauss-Newton from the seed path's ends."""
+        k = len(runs)
+        out = np.full((k, 2), np.nan)
+        if not k:
             return out
-        face = np.repeat([r.face for r in runs], 2)
-        target = self.pool.xyz[np.array([[r.start, r.end] for r in runs]).ravel()]
-        uv = np.array([[r.uv[0], r.uv[-1]] for r in runs]).reshape(-1, 2)
-        step = np.repeat([r.max_step for r in runs], 2)
+        face = np.array([r.face for r in runs])
+        target = self.pool.xyz[[r.end if w else r.start for r, w in zip(runs, end.tolist(), strict=True)]]
+        uv = np.array([r.uv[-1] if w else r.uv[0] for r, w in zip(runs, end.tolist(), strict=True)])
+        step = np.array([r.max_step for r in runs])
         p, du, dv = gp_Pnt(), gp_Vec(), gp_Vec()
         u, v = uv[:, 0].copy(), uv[:, 1].copy()
+        normal = np.full((k, 3), np.nan)
+        gap = np.full(k, np.inf)
+        act = np.arange(k)
         for _ in range(END_TANGENT_ITER):
-            res = self._d1(face, u, v, self._ads, p, du, dv)
-            r = res[:, :3] - target
+            res = self._d1(face[act], u[act], v[act], self._ads, p, du, dv)
+            r = res[:, :3] - target[act]
             su, sv = res[:, 3:6], res[:, 6:9]
+            normal[act], gap[act] = np.cross(su, sv), np.linalg.norm(r, axis=1)
             a11, a12, a22 = (su * su).sum(1), (su * sv).sum(1), (sv * sv).sum(1)
             b1, b2 = (su * r).sum(1), (sv * r).sum(1)
             det = a11 * a22 - a12 * a12
@@ -1736,18 +1748,19 @@ class RingSampler:
             det = np.where(ok, det, 1.0)
             stu, stv = -(a22 * b1 - a12 * b2) / det, -(a11 * b2 - a12 * b1) / det
             norm = np.hypot(stu, stv)
-            scale = np.where(ok, np.minimum(1.0, step / np.where(norm > 0, norm, 1.0)), 0.0)
-            u += stu * scale
-            v += stv * scale
-        res = self._d1(face, u, v, self._ads, p, du, dv)
-        normal = np.cross(res[:, 3:6], res[:, 6:9])
-        on = np.linalg.norm(res[:, :3] - target, axis=1) <= END_TANGENT_TOL_MM
+            scale = np.where(ok, np.minimum(1.0, step[act] / np.where(norm > 0, norm, 1.0)), 0.0)
+            u[act] += stu * scale
+            v[act] += stv * scale
+            # converged (the step's move on the surface under a nanometre) or stuck: done
+            move = np.linalg.norm(su * (stu * scale)[:, None] + sv * (stv * scale)[:, None], axis=1)
+            act = act[ok & (move > 1e-9)]
+            if not len(act):
+                break
         size = np.linalg.norm(normal, axis=1)
         flat = np.hypot(normal[:, 0], normal[:, 1])
-        ok = on & (flat > END_TANGENT_MIN_SLOPE * size)
-        t = np.column_stack([normal[:, 1], -normal[:, 0]]) / np.where(flat > 0, flat, 1.0)[:, None]
-        t[~ok] = np.nan
-        return t.reshape(n, 2, 2)
+        ok = (gap <= END_TANGENT_TOL_MM) & (flat > END_TANGENT_MIN_SLOPE * size)
+        out[ok] = np.column_stack([normal[ok, 1], -normal[ok, 0]]) / flat[ok, None]
+        return out
 
     def _midpoints_off_the_path(
         self, face, zc, step, mid, mid_ok, pa, pb, length, traced, mid_uv
@@ -2187,6 +2200,26 @@ def _splice(ring: list[int], pieces: list[tuple[int, int, list[int]]]) -> list[i
             return out
 
 
+def _end_segments(
+    ri: np.ndarray, xyz: np.ndarray, longer: float = 0.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The first and last segments of each run (points ``ri``/``xyz`` sorted by run and arc
+    length) longer than ``longer``: their first and second points (indices), their run (its id in
+    ``ri``) and which end of it (0: start, 1: end)."""
+    if len(ri) < 2:
+        none = np.zeros(0, dtype=np.int64)
+        return none, none, none, none
+    first = np.flatnonzero(np.concatenate([[True], ri[1:] != ri[:-1]]))
+    last = np.concatenate([first[1:], [len(ri)]]) - 1
+    two = last > first  # runs with a segment
+    first, last = first[two], last[two]
+    a = np.concatenate([first, last - 1])
+    b = np.concatenate([first + 1, last])
+    end = np.repeat([0, 1], len(first))
+    long = np.hypot(*(xyz[b, :2] - xyz[a, :2]).T) > longer
+    return a[long], b[long], ri[a[long]], end[long]
+
+
 def _end_bend_segments(
     ri: np.ndarray, xyz: np.ndarray, tangents: np.ndarray, chord: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -2195,15 +2228,8 @@ def _end_bend_segments(
     2) at start and end, NaN where unknown) at more than END_BEND_FACTOR times the angle a shallow
     arc within ``chord`` of its chord makes with it (4 chord / L). Segments no longer than the chord
     are within it whatever their arc."""
-    if len(ri) < 2:
-        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    first = np.flatnonzero(np.concatenate([[True], ri[1:] != ri[:-1]]))
-    last = np.concatenate([first[1:], [len(ri)]]) - 1
-    two = last > first  # runs with a segment
-    first, last = first[two], last[two]
-    a = np.concatenate([first, last - 1])
-    b = np.concatenate([first + 1, last])
-    at = np.concatenate([tangents[ri[first], 0], tangents[ri[last], 1]])
+    a, b, run, end = _end_segments(ri, xyz)
+    at = tangents[run, end]
     c = xyz[b, :2] - xyz[a, :2]
     length = np.hypot(c[:, 0], c[:, 1])
     with np.errstate(invalid="ignore", divide="ignore"):
