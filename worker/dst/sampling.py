@@ -91,9 +91,8 @@ MAX_INFLECTION_ROUNDS = 4
 END_BEND_FACTOR = 1.5
 MAX_END_BEND_ROUNDS = 6
 END_TANGENT_ITER = 6  # Gauss-Newton steps placing a run's end vertex on its face (from its seed path)
-END_TANGENT_TOL_MM = (
-    0.01  # ... where it lies within this of the face (a file's tolerance): the face's tangent
-)
+# ... where it lies within this of the face (a file's tolerance): the face's tangent
+END_TANGENT_TOL_MM = 0.01
 END_TANGENT_MIN_SLOPE = 1e-3  # a face steeper than this (normal's horizontal share) has a section tangent
 MAX_REFINE_ROUNDS = 40  # halving a segment 24 times takes 1 m down to 60 nm: still failing means broken
 # A sampled ring turning by more than this (cosine) at a vertex inside a face is checked for an
@@ -1501,8 +1500,10 @@ class RingSampler:
                 sag = np.where(mid_ok, point_segment_distance(np.nan_to_num(mid), pa, pb), 0.0)
                 # midpoints placed by their path position in their chord's middle half (not solved
                 # again from the chord, not on a trace): where a segment may be halved (``_halves``)
-                t_mid = _chord_position(np.nan_to_num(mid), pa, pb)
-                halvable = ~off_path & ~run_traced[ri] & (t_mid >= 0.25) & (t_mid <= 0.75)
+                halvable = None
+                if halving:
+                    t_mid = _chord_position(np.nan_to_num(mid), pa, pb)
+                    halvable = ~off_path & ~run_traced[ri] & (t_mid >= 0.25) & (t_mid <= 0.75)
                 quarters, q_ok = self._quarter_sags(
                     solve,
                     sag,
@@ -1631,12 +1632,13 @@ class RingSampler:
             ri, s_, xyz = np.concatenate(run_all), np.concatenate(s_all), np.concatenate(xyz_all)
             order = np.lexsort((s_, ri))
             # the tangents at the ends of segments long enough to leave them too steeply
-            run, end = _end_segments(ri[order], xyz[order], END_BEND_FACTOR * 4.0 * e)[2:]
+            ends = _end_segments(ri[order], xyz[order], END_BEND_FACTOR * 4.0 * e)
+            run, end = ends[2:]
             todo = ~known[run, end]
             run, end = run[todo], end[todo]
             tangents[run, end] = self._end_tangents([runs[k] for k in run.tolist()], end)
             known[run, end] = True
-            a, b = _end_bend_segments(ri[order], xyz[order], tangents, e)
+            a, b = _end_bend_segments(xyz[order], ends, tangents, e)
             a, b = order[a], order[b]
             new = [
                 k
@@ -2221,14 +2223,14 @@ def _end_segments(
 
 
 def _end_bend_segments(
-    ri: np.ndarray, xyz: np.ndarray, tangents: np.ndarray, chord: float
+    xyz: np.ndarray, ends: tuple[np.ndarray, ...], tangents: np.ndarray, chord: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The end segments (first and last points, as indices into ``ri``/``xyz``: points sorted by
-    run and arc length) of runs whose curve leaves the corner at their end (``tangents``: (n_runs, 2,
-    2) at start and end, NaN where unknown) at more than END_BEND_FACTOR times the angle a shallow
-    arc within ``chord`` of its chord makes with it (4 chord / L). Segments no longer than the chord
-    are within it whatever their arc."""
-    a, b, run, end = _end_segments(ri, xyz)
+    """Of the runs' end segments ``ends`` (``_end_segments`` of the points ``xyz``, sorted by run
+    and arc length), those (first and last points, as indices into ``xyz``) whose curve leaves the
+    corner at their end (``tangents``: (n_runs, 2, 2) at start and end, NaN where unknown) at more
+    than END_BEND_FACTOR times the angle a shallow arc within ``chord`` of its chord makes with it
+    (4 chord / L). Segments no longer than the chord are within it whatever their arc."""
+    a, b, run, end = ends
     at = tangents[run, end]
     c = xyz[b, :2] - xyz[a, :2]
     length = np.hypot(c[:, 0], c[:, 1])

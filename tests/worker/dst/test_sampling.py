@@ -640,7 +640,7 @@ def test_an_end_segment_leaving_its_corner_steeper_than_a_shallow_arc_is_told():
     off the chord) is not; the same points with the start tangent turned 0.44 rad off (the bend
     next to boxed_sphere's corner) are, at the start only; a segment no longer than the chord, or an
     unknown tangent (NaN), is not."""
-    from worker.dst.sampling import _end_bend_segments
+    from worker.dst.sampling import _end_bend_segments, _end_segments
 
     e, length = 0.025, 0.6
     radius = length**2 / (8.0 * e)  # the arc whose sag over a 0.6 mm chord is the budget
@@ -652,12 +652,14 @@ def test_an_end_segment_leaving_its_corner_steeper_than_a_shallow_arc_is_told():
     start_t = np.array([math.cos(ang[0]), -math.sin(ang[0])])
     end_t = np.array([math.cos(ang[-1]), -math.sin(ang[-1])])
     tangents = np.array([[start_t, end_t]])
-    a, b = _end_bend_segments(ri, arc, tangents, e)
+    a, b = _end_bend_segments(arc, _end_segments(ri, arc), tangents, e)
     assert len(a) == 0
     turn = 0.44
     steep = np.array([math.cos(ang[0] - turn), -math.sin(ang[0] - turn)])
-    a, b = _end_bend_segments(ri, arc, np.array([[steep, end_t]]), e)
+    a, b = _end_bend_segments(arc, _end_segments(ri, arc), np.array([[steep, end_t]]), e)
     assert a.tolist() == [0] and b.tolist() == [1]
     short = arc * (0.9 * e / length)  # every segment shorter than the chord
-    assert len(_end_bend_segments(ri, short, np.array([[steep, end_t]]), e)[0]) == 0
-    assert len(_end_bend_segments(ri, arc, np.array([[[np.nan, np.nan], end_t]]), e)[0]) == 0
+    assert len(_end_bend_segments(short, _end_segments(ri, short), np.array([[steep, end_t]]), e)[0]) == 0
+    assert (
+        len(_end_bend_segments(arc, _end_segments(ri, arc), np.array([[[np.nan, np.nan], end_t]]), e)[0]) == 0
+    )
