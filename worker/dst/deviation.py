@@ -56,8 +56,14 @@ class MeshCut:
     seg_node: np.ndarray
 
 
-def cut_mesh(vertices: np.ndarray, triangles: np.ndarray, heights: np.ndarray) -> MeshCut:
-    """Sections of a triangle mesh at ``heights`` (ascending), vertices on a plane counting as below."""
+def cut_mesh(
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    heights: np.ndarray,
+    crossed: tuple[np.ndarray, np.ndarray] | None = None,
+) -> MeshCut:
+    """Sections of a triangle mesh at ``heights`` (ascending), vertices on a plane counting as below.
+    ``crossed``: the triangles' ``crossed_planes`` at these heights, where the caller has them."""
     v = np.asarray(vertices, dtype=np.float64)
     t = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     h = np.asarray(heights, dtype=np.float64)
@@ -65,8 +71,9 @@ def cut_mesh(vertices: np.ndarray, triangles: np.ndarray, heights: np.ndarray) -
     nv = len(v)
     if len(t) == 0 or n_planes == 0:
         return _empty_cut(n_planes)
-    tz = v[:, 2][t]
-    first, stop = crossed_planes(tz, h)
+    vz = v[:, 2]
+    tz = vz[t]
+    first, stop = crossed_planes(tz, h) if crossed is None else crossed
     count = np.maximum(stop - first, 0)
     tri = np.repeat(np.arange(len(t)), count)
     if len(tri) == 0:
@@ -76,28 +83,37 @@ def cut_mesh(vertices: np.ndarray, triangles: np.ndarray, heights: np.ndarray) -
     hz = h[plane]
     corners = t[tri]  # (k, 3)
     above = tz[tri] > hz[:, None]
-    # the two corner edges k -> k+1 whose ends lie on different sides
-    nxt = np.roll(np.arange(3), -1)
-    crossing = above != above[:, nxt]
-    edge_k = np.argsort(~crossing, axis=1, kind="stable")[:, :2]  # the two crossing edges, in order
-    rows = np.arange(len(tri))[:, None]
-    a = corners[rows, edge_k]
-    b = corners[rows, nxt[edge_k]]
-    a_above = above[rows, edge_k]
+    # The plane leaves the lowest corner below (or on it) and the highest above: exactly two of the
+    # corner edges k -> k + 1 (edge 0: corners 0 -> 1, 1: 1 -> 2, 2: 2 -> 0) have ends on different
+    # sides, in order (0, 1), (0, 2) or (1, 2).
+    cross0 = above[:, 0] != above[:, 1]
+    edge_k = np.column_stack([np.where(cross0, 0, 1), np.where(cross0 & (above[:, 1] != above[:, 2]), 1, 2)])
+    a = np.take_along_axis(corners, edge_k, axis=1)
+    b = np.take_along_axis(corners, (edge_k + 1) % 3, axis=1)
+    a_above = np.take_along_axis(above, edge_k, axis=1)
     lo = np.where(a_above, b, a)  # the end below or on the plane
     hi = np.where(a_above, a, b)
-    z_lo, z_hi = v[lo, 2], v[hi, 2]
-    frac = (hz[:, None] - z_lo) / (z_hi - z_lo)
+    z_lo = vz[lo]
+    frac = (hz[:, None] - z_lo) / (vz[hi] - z_lo)
     on = z_lo == hz[:, None]
     frac[on] = 0.0
-    pts = v[lo, :2] + frac[..., None] * (v[hi, :2] - v[lo, :2])
+    vx, vy = v[:, 0], v[:, 1]
+    x_lo, y_lo = vx[lo], vy[lo]
+    pts = np.stack([x_lo + frac * (vx[hi] - x_lo), y_lo + frac * (vy[hi] - y_lo)], axis=-1)
     key = np.where(on, lo, nv + np.minimum(lo, hi) * nv + np.maximum(lo, hi))
     key = key * n_planes + plane[:, None]
-    keep = (key[:, 0] != key[:, 1]) & ~_slit_segments(key)
-    pts, key, plane = pts[keep], key[keep], plane[keep]
-    # loops: connected components of the segment graph, per plane (keys include the plane)
+    # the cut's nodes (numbered in key order), then the segments kept: not from a node to itself,
+    # not a slit
     uniq, inv = np.unique(key.ravel(), return_inverse=True)
     inv = inv.reshape(-1, 2)
+    keep = (inv[:, 0] != inv[:, 1]) & ~_slit_segments(inv)
+    pts, inv, plane = pts[keep], inv[keep], plane[keep]
+    used = np.zeros(len(uniq), dtype=bool)
+    used[inv.ravel()] = True
+    if not used.all():  # nodes only dropped segments had
+        inv = (np.cumsum(used) - 1)[inv]
+        uniq = uniq[used]
+    # loops: connected components of the segment graph, per plane (keys include the plane)
     n_nodes = len(uniq)
     graph = coo_matrix((np.ones(len(inv)), (inv[:, 0], inv[:, 1])), shape=(n_nodes, n_nodes))
     n_comp, label = connected_components(graph, directed=False)
@@ -123,22 +139,25 @@ def cut_mesh(vertices: np.ndarray, triangles: np.ndarray, heights: np.ndarray) -
     )
 
 
-def _slit_segments(key: np.ndarray) -> np.ndarray:
-    """Mask of cut segments that come in pairs between the same two points at one plane. A valley
-    edge lying exactly on a plane (both faces rising from it) is cut by the triangles on both sides,
-    a corner on the plane counting as below: a slit of zero width through the contour, which slicers
-    drop when they clean their polygons. Left in, it would join loops and count as contour. (The
-    cut's segment directions follow the triangles' corner order, not the surface's orientation, so
-    the pair is found without them.)"""
-    lo, hi = np.minimum(key[:, 0], key[:, 1]), np.maximum(key[:, 0], key[:, 1])
-    order = np.lexsort((hi, lo))  # stable: equal segments keep their order
-    lo, hi = lo[order], hi[order]
-    start = np.concatenate([[True], (lo[1:] != lo[:-1]) | (hi[1:] != hi[:-1])])
+def _slit_segments(node: np.ndarray) -> np.ndarray:
+    """Mask of cut segments (their two nodes, ``node`` (n, 2), numbered below 2**31) that come in
+    pairs between the same two nodes. A valley edge lying exactly on a plane (both faces rising from
+    it) is cut by the triangles on both sides, a corner on the plane counting as below: a slit of
+    zero width through the contour, which slicers drop when they clean their polygons. Left in, it
+    would join loops and count as contour. (The cut's segment directions follow the triangles'
+    corner order, not the surface's orientation, so the pair is found without them.)"""
+    both = np.minimum(node[:, 0], node[:, 1]) << 32 | np.maximum(node[:, 0], node[:, 1])
+    slit = np.zeros(len(node), dtype=bool)
+    ordered = np.sort(both)
+    if not len(both) or not (ordered[1:] == ordered[:-1]).any():  # no two alike: mostly
+        return slit
+    order = np.argsort(both, kind="stable")  # equal segments keep their order
+    both = both[order]
+    start = np.concatenate([[True], both[1:] != both[:-1]])
     first = np.flatnonzero(start)  # where each run of equal segments begins
     run = np.cumsum(start) - 1
-    run_len = np.diff(np.append(first, len(key)))
-    slit = np.zeros(len(key), dtype=bool)
-    slit[order] = np.arange(len(key)) - first[run] < 2 * (run_len[run] // 2)  # whole pairs of each run
+    run_len = np.diff(np.append(first, len(node)))
+    slit[order] = np.arange(len(node)) - first[run] < 2 * (run_len[run] // 2)  # whole pairs of each run
     return slit
 
 

@@ -35,6 +35,7 @@ from worker.dst.baselines import BASELINE_PRESETS, DEFAULT_BASELINES, Preset, pa
 from worker.dst.deviation import (
     DENSE_SPACING_MM,
     LayerMetrics,
+    MeshCut,
     SegmentSet,
     compare,
     crossed_planes,
@@ -812,9 +813,12 @@ class _Placed:
         else:
             self.first = self.stop = np.zeros(0, dtype=np.int64)
 
-    def crossing(self, j0: int, j1: int) -> np.ndarray:
-        """The triangles some plane j0 .. j1 - 1 cuts."""
-        return np.flatnonzero((self.first < j1) & (self.stop > j0))
+    def cut(self, heights: np.ndarray, j0: int, j1: int) -> MeshCut:
+        """The mesh's cut at planes j0 .. j1 - 1 of ``heights``, from the triangles they cut."""
+        sel = np.flatnonzero((self.first < j1) & (self.stop > j0))
+        n = j1 - j0
+        crossed = (np.clip(self.first[sel] - j0, 0, n), np.clip(self.stop[sel] - j0, 0, n))
+        return cut_mesh(self.vertices, self.triangles[sel], heights[j0:j1], crossed)
 
 
 def _measure_planes(
@@ -834,7 +838,7 @@ def _measure_planes(
     and below the face, and keeps the better match. ``crossings``: where the cut crosses itself is
     looked for too."""
     v, tr = mesh.vertices, mesh.triangles
-    cut = offset_cut(cut_mesh(v, tr[mesh.crossing(j0, j1)], heights[j0:j1]), j0, n_planes)
+    cut = offset_cut(mesh.cut(heights, j0, j1), j0, n_planes)
     pockets = tuple(self_crossings(cut)) if crossings else ()
     met = compare(cut, ref_set, ref_perimeter, n_planes, workers=workers)
     side = np.zeros(n_planes, dtype=np.int8)

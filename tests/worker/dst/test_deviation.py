@@ -11,6 +11,7 @@ from worker.dst.deviation import (
     _FIRST_RADIUS_MM,
     _K_NEIGHBOURS,
     SegmentSet,
+    _slit_segments,
     arc_midpoints,
     compare,
     cut_mesh,
@@ -463,3 +464,11 @@ def test_loop_self_crossings_are_the_walked_pockets_of_a_tangled_loop():
     walked = self_crossings(loops_cut(loops))
     assert len(walked) > 200 and {p for p, _, _ in walked} == {0, 1}
     np.testing.assert_allclose(loop_self_crossings(loops), walked, rtol=1e-9, atol=1e-9)
+
+
+def test_slits_are_dropped_in_whole_pairs():
+    # three cuts of one edge between nodes 4 and 7 (either direction) and two ordinary segments: the
+    # first two of the three make a pair, the third stays
+    node = np.array([[4, 7], [1, 4], [7, 4], [7, 2], [4, 7]])
+    assert _slit_segments(node).tolist() == [True, False, True, False, False]
+    assert not _slit_segments(np.array([[0, 1], [1, 2], [2, 0]])).any()
