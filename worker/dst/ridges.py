@@ -31,7 +31,7 @@ from OCP.GeomAbs import GeomAbs_Line, GeomAbs_Plane
 
 from worker.dst.constants import ON_PLANE_TOL_MM
 from worker.dst.lowest import face_optimum_from_nodes, snap_local_extremes
-from worker.dst.sampling import point_segment_distance
+from worker.dst.refine import point_segment_distance
 from worker.dst.topomesh import TopoMesh
 
 # a plane this many topology deflections beside a face's highest (lowest) node may miss its sliver

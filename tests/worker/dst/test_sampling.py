@@ -10,7 +10,8 @@ from OCP.GeomAbs import GeomAbs_Cone, GeomAbs_Plane
 
 from worker.dst import constants as C
 from worker.dst.pipeline import bbox_diagonal, topo_deflection
-from worker.dst.sampling import RingSampler, VertexPool, _inflected_segments, point_segment_distance
+from worker.dst.refine import _inflected_segments, point_segment_distance
+from worker.dst.sampling import RingSampler, VertexPool
 from worker.dst.sections import cut_topology
 from worker.dst.step_io import read_step
 from worker.dst.topomesh import build_topomesh
@@ -415,7 +416,7 @@ def test_a_surface_kink_the_curve_does_not_cross_between_the_runs_ends_is_no_rin
     leaves the line's point outside the run, and the ring stepped back to it and forth again, a bow
     tie: no such point then. Where the curve crosses the line between the ends, it is the corner."""
     from tests.conftest import kinked_prism, write_step
-    from worker.dst.sampling import _Run
+    from worker.dst.refine import _Run
 
     corners = [(0.0, 0.0), (20.0, 0.0), (26.0, 9.0), (12.0, 15.0), (-3.0, 7.0)]
     mesh = _topomesh_of(write_step(kinked_prism(corners, 5.0), tmp_path / "kinked.step"))
@@ -510,7 +511,7 @@ def test_a_runs_end_segments_are_judged_by_the_turn_across_its_corner_where_the_
     """``_inflected_segments`` with each run's successor: a circle sampled as one run that ends
     where it starts has no segment to check; a circle in two runs joined both ways neither; with
     one of the links unknown, the two segments at that corner are checked."""
-    from worker.dst.sampling import _run_successors
+    from worker.dst.refine import _run_successors
 
     a = np.linspace(0.0, 2.0 * math.pi, 13)
     circle = np.column_stack([np.cos(a), np.sin(a), np.zeros_like(a)])
@@ -531,7 +532,7 @@ def test_a_segments_largest_distance_is_estimated_where_its_bend_is_off_centre()
     sampled at 0.0239, against a 0.025 budget); the estimate is the peak within 0.1%. A circular arc
     of 90 degrees, sampled unevenly, is estimated within 0.5% of its exact sag, not above it by more
     (no point wasted on it)."""
-    from worker.dst.sampling import _parabola_peak
+    from worker.dst.refine import _parabola_peak
 
     def peak(t, f):
         return float(_parabola_peak(np.asarray([t]), np.asarray([f]), np.array([True]))[0])
@@ -614,7 +615,7 @@ def test_a_runs_end_tangent_is_its_faces_section_tangent_at_the_corner(cone_samp
     """``_end_tangents``: each run's start and end vertex placed on the run's own face from its seed
     path's ends (here seeds 0.05 off in (u, v)), and the section's tangent there (either sense): on
     the cone at z = 5, the circle's tangent at each point; NaN for a vertex off its face."""
-    from worker.dst.sampling import _Run
+    from worker.dst.refine import _Run
 
     sampler, cone, _ = cone_sampler
     ev = sampler.mesh.faces[cone]
@@ -640,7 +641,7 @@ def test_an_end_segment_leaving_its_corner_steeper_than_a_shallow_arc_is_told():
     off the chord) is not; the same points with the start tangent turned 0.44 rad off (the bend
     next to boxed_sphere's corner) are, at the start only; a segment no longer than the chord, or an
     unknown tangent (NaN), is not."""
-    from worker.dst.sampling import _end_bend_segments, _end_segments
+    from worker.dst.refine import _end_bend_segments, _end_segments
 
     e, length = 0.025, 0.6
     radius = length**2 / (8.0 * e)  # the arc whose sag over a 0.6 mm chord is the budget
