@@ -1,7 +1,7 @@
 """Exact evaluation on the B-rep: points of a face or an edge at a given height.
 
 Corner points and crossings of the topology mesh come from here (the batched Newton on level sets
-that places all other ring vertices lives in ``sampling``). Two primitives:
+that places all other ring vertices lives in ``sampling`` and ``refine``). Two primitives:
 
 - :func:`root_on_uv_segment`: the point at height ``c`` on the surface along a straight (u, v) segment
   whose ends bracket ``c`` (Brent): used for the crossings of topology-mesh edges inside a face.
