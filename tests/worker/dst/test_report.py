@@ -1086,3 +1086,25 @@ def test_the_reference_is_within_its_chord_of_a_turned_torus_in_closed_form(toru
         np.testing.assert_allclose(np.hypot(ring, own[:, 2]), 5.0, atol=1e-7)
     assert cut >= 15
     assert worst <= REFERENCE_CHORD_MM
+
+
+def test_a_range_of_planes_is_cut_from_its_own_triangles_as_the_whole_mesh_is_cut():
+    """``_Placed.cut`` (a report piece: the triangles its planes cross, their crossed planes taken
+    from the whole mesh's) gives, plane for plane, the cut of the whole mesh, planes through
+    vertices included."""
+    from worker.dst.deviation import cut_mesh
+    from worker.dst.report import _Placed
+
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=10.0)
+    v, t = np.asarray(sphere.vertices), np.asarray(sphere.faces)
+    heights = np.unique(np.concatenate([np.linspace(-9.5, 9.5, 23), v[::37, 2]]))  # some through vertices
+    placed = _Placed(v, t, heights)
+    for j0, j1 in [(0, len(heights)), (0, 5), (7, 8), (11, len(heights)), (3, 3)]:
+        piece, whole = placed.cut(heights, j0, j1), cut_mesh(v, t, heights[j0:j1])
+        assert np.array_equal(piece.loops, whole.loops) and np.array_equal(
+            piece.open_chains, whole.open_chains
+        )
+        for j in range(j1 - j0):
+            a, b = piece.seg[piece.seg_plane == j], whole.seg[whole.seg_plane == j]
+            assert np.array_equal(np.unique(a.reshape(-1, 4), axis=0), np.unique(b.reshape(-1, 4), axis=0))
+        assert piece.loops.sum() == (j1 - j0)  # a sphere: one loop a plane
