@@ -30,6 +30,7 @@ from app.page import INDEX_HTML
 from worker.dst.baselines import parse_baselines
 from worker.dst.errors import InvalidParameters
 from worker.dst.params import ROTATION_FIELDS, SLICING_FIELDS, SliceParams
+from worker.dst.report_schema import Report
 from worker.dst.sniff import SNIFF_BYTES, sniff_step
 from worker.settings import Settings, get_settings
 from worker.storage import ARTIFACTS, ArtifactStore, make_artifact_store
@@ -647,7 +648,10 @@ for _name, _suffix, _summary in (
         tags=["artifacts"],
         summary=_summary,
         responses={
-            200: {"content": {ARTIFACTS[_name][1].split(";")[0]: {}}},
+            200: {
+                "content": {ARTIFACTS[_name][1].split(";")[0]: {}},
+                **({"model": Report} if _name == "report" else {}),
+            },
             404: ERROR_RESPONSES[404],
             409: ERROR_RESPONSES[409],
         },

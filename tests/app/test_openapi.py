@@ -42,3 +42,19 @@ def test_operation_ids_are_stable_and_fields_described():
 def test_the_api_never_imports_occt():
     code = "import sys, app.main, app.client; sys.exit(any(m == 'OCP' or m.startswith('OCP.') for m in sys.modules))"
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
+
+
+def test_the_report_schema_is_published_with_the_report_endpoint():
+    """A web front end can type the deviation report from the spec: GET .../report is documented with
+    the report's own model (worker.dst.report_schema, loaded without the geometry kernel)."""
+    spec = json.loads(spec_text())
+    ok = spec["paths"]["/v1/jobs/{job_id}/report"]["get"]["responses"]["200"]
+    assert ok["content"]["application/json"]["schema"] == {"$ref": "#/components/schemas/Report"}
+    schemas = spec["components"]["schemas"]
+    assert {"input", "params", "planes", "reference", "meshes", "warnings"} <= set(
+        schemas["Report"]["required"]
+    )
+    mesh = schemas["MeshReport"]["properties"]
+    assert {"name", "triangles", "stl_bytes", "watertight", "seconds", "summary", "layers"} <= set(mesh)
+    layer = schemas["Layer"]["properties"]
+    assert {"z", "vertex_dev", "chord_dev", "perimeter_err", "loops", "loops_exact"} <= set(layer)

@@ -13,7 +13,7 @@ matplotlib.use("Agg")  # no display; must precede pyplot
 import matplotlib.pyplot as plt  # noqa: E402
 
 from worker.dst.forked import TaskGroup  # noqa: E402
-from worker.dst.report import MeshReport, Report  # noqa: E402
+from worker.dst.report_schema import MeshReport, Report  # noqa: E402
 from worker.dst.stl_io import write_atomic  # noqa: E402
 
 _FLOOR = 1e-7  # log axes: values below this (DST's float32 rounding) are drawn at the floor
