@@ -31,21 +31,23 @@ from OCP.TopLoc import TopLoc_Location
 from OCP.TopoDS import TopoDS, TopoDS_Face
 
 from worker.dst.baselines import BASELINE_PRESETS, DEFAULT_BASELINES, Preset, parse_baselines
-from worker.dst.deviation import (
-    DENSE_SPACING_MM,
-    LayerMetrics,
+from worker.dst.cuts import (
     MeshCut,
-    SegmentSet,
-    compare,
     crossed_planes,
-    curve_lengths,
     cut_mesh,
     loop_self_crossings,
-    loop_successors,
     loops_to_segments,
     offset_cut,
     select_planes,
     self_crossings,
+)
+from worker.dst.deviation import (
+    DENSE_SPACING_MM,
+    LayerMetrics,
+    SegmentSet,
+    compare,
+    curve_lengths,
+    loop_successors,
     span_curvatures,
 )
 from worker.dst.errors import DstError, ResourceLimitExceeded, TessellationError
@@ -626,7 +628,7 @@ class _Measured:
     metrics: LayerMetrics
     mesh_wide: tuple[int, int, float] | None  # open edges, non-manifold edges, volume
     side: np.ndarray  # per plane: 0, or at a flat-face plane +1 (measured above the face) / -1 (below)
-    # where the cut crosses itself (``deviation.self_crossings``; looked for in the DST mesh only)
+    # where the cut crosses itself (``cuts.self_crossings``; looked for in the DST mesh only)
     pockets: tuple[tuple[int, float, float], ...] = ()
 
 
@@ -1005,7 +1007,7 @@ def _self_crossing_warning(
     pockets: list[tuple[int, float, float]], planes_z: np.ndarray, chord: float
 ) -> str | None:
     """The warning for a DST mesh whose contour crosses itself round more than a chord-budget
-    square at some plane (``deviation.self_crossings``; bow ties of points out of order by
+    square at some plane (``cuts.self_crossings``; bow ties of points out of order by
     micrometres, with no such pocket, are left out)."""
     big = [(j, area, length) for j, area, length in pockets if area > chord * chord]
     if not big:
@@ -1029,7 +1031,7 @@ def _reference_fault_warning(
     resolution: float,
 ) -> str | None:
     """The warning for an exact reference that crosses itself round more than a chord-budget square
-    (``deviation.loop_self_crossings``: the pockets ``self_crossings`` finds) at a plane that holds a
+    (``cuts.loop_self_crossings``: the pockets ``self_crossings`` finds) at a plane that holds a
     mesh's largest deviations: its points are exact, but out of order there (a plane grazing a crest,
     or passing a saddle, where the sampler's traces fail), and the meshes' chord_dev and perimeter_err
     at that plane may measure the reference. Looked for where it matters and is cheap: each mesh's

@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-from worker.dst.deviation import segment_pairs_near, side
+from worker.dst.cuts import segment_pairs_near, side
 from worker.dst.meshops import repeated_corner
 from worker.dst.sampling import RingSampler, VertexPool, distances_to_segments
 from worker.dst.sections import SectionTopology
@@ -161,8 +161,8 @@ def _signed_area(p: np.ndarray) -> float:
 
 def _crosses_itself(p: np.ndarray) -> bool:
     """Whether the closed polyline ``p`` (k, 2) has two non-adjacent segments that cross or touch
-    (collinear ones overlapping): of the pairs ``deviation.segment_pairs_near`` finds (every pair
-    that meets is among them), unlike ``deviation.self_crossings`` touching ones too."""
+    (collinear ones overlapping): of the pairs ``cuts.segment_pairs_near`` finds (every pair
+    that meets is among them), unlike ``cuts.self_crossings`` touching ones too."""
     k = len(p)
     if k < 4:
         return False

@@ -460,7 +460,8 @@ def _exact_points_from_ring(mesh, heights: np.ndarray) -> tuple[np.ndarray, np.n
     """Every exact point of the report's reference at ``heights`` (above the part's lowest point),
     its distance from the DST mesh's cut there (its STL's float32 vertices, placed as a slicer
     places them) and the index of its plane among ``heights``: (distances, planes, points)."""
-    from worker.dst.deviation import SegmentSet, cut_mesh
+    from worker.dst.cuts import cut_mesh
+    from worker.dst.deviation import SegmentSet
     from worker.dst.report import MeshInput, _exact_reference, _on_bed
 
     ref = _exact_reference(mesh.part, mesh.params, heights, helper=False).sections

@@ -7,22 +7,24 @@ import math
 import numpy as np
 import pytest
 
+from worker.dst.cuts import (
+    _slit_segments,
+    cut_mesh,
+    loop_self_crossings,
+    loops_cut,
+    loops_to_segments,
+    self_crossings,
+)
 from worker.dst.deviation import (
     _FIRST_RADIUS_MM,
     _K_NEIGHBOURS,
     SegmentSet,
-    _slit_segments,
     arc_midpoints,
     compare,
-    cut_mesh,
-    loop_self_crossings,
     loop_successors,
-    loops_cut,
-    loops_to_segments,
     max_per_plane,
     midpoints,
     segment_neighbours,
-    self_crossings,
     span_curvatures,
     span_max,
 )

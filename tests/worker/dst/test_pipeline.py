@@ -569,7 +569,7 @@ def test_a_plane_beside_a_saddle_cuts_the_exact_number_of_loops(make_step, tilt,
     The DST ring now has the exact number of loops there (Morse theory: between the saddles two, else
     one), every ring vertex on the torus (closed form), and the report measures the plane within the
     budget, its reference agreeing on the loops."""
-    from worker.dst.deviation import cut_mesh
+    from worker.dst.cuts import cut_mesh
     from worker.dst.report import build_report
 
     big, z = 15.0, 10.1

@@ -679,7 +679,8 @@ def test_corpus_part_report_matches_independent_recomputation(corpus, tmp_path):
 def test_reference_agrees_with_occt_section(corpus):
     """The report's reference against BRepAlgoAPI_Section's curves, both ways: OCCT's points lie on
     the reference curves, and the reference's points lie on OCCT's curves (sampled every 2 um)."""
-    from worker.dst.deviation import SegmentSet, loops_to_segments, span_curvatures
+    from worker.dst.cuts import loops_to_segments
+    from worker.dst.deviation import SegmentSet, span_curvatures
 
     part = read_step(corpus / "mechanical" / "r103ec.stp")
     heights = np.array([1.1, 7.3, 15.9])
@@ -1092,7 +1093,7 @@ def test_a_range_of_planes_is_cut_from_its_own_triangles_as_the_whole_mesh_is_cu
     """``_Placed.cut`` (a report piece: the triangles its planes cross, their crossed planes taken
     from the whole mesh's) gives, plane for plane, the cut of the whole mesh, planes through
     vertices included."""
-    from worker.dst.deviation import cut_mesh
+    from worker.dst.cuts import cut_mesh
     from worker.dst.report import _Placed
 
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=10.0)
