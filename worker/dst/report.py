@@ -18,24 +18,20 @@ from typing import Literal
 import numpy as np
 from OCP.Bnd import Bnd_Box
 from OCP.BRep import BRep_Tool
-from OCP.BRepAdaptor import BRepAdaptor_Surface
 from OCP.BRepBndLib import BRepBndLib
 from OCP.BRepMesh import BRepMesh_IncrementalMesh
 from OCP.BRepTools import BRepTools
-from OCP.gp import gp_Pnt
-from OCP.ShapeAnalysis import ShapeAnalysis_Surface
 from OCP.StlAPI import StlAPI_Writer
-from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE
+from OCP.TopAbs import TopAbs_FACE
 from OCP.TopExp import TopExp_Explorer
 from OCP.TopLoc import TopLoc_Location
-from OCP.TopoDS import TopoDS, TopoDS_Face
+from OCP.TopoDS import TopoDS
 
 from worker.dst.baselines import BASELINE_PRESETS, DEFAULT_BASELINES, Preset, parse_baselines
 from worker.dst.cuts import (
     MeshCut,
     crossed_planes,
     cut_mesh,
-    loop_self_crossings,
     loops_to_segments,
     offset_cut,
     select_planes,
@@ -51,7 +47,6 @@ from worker.dst.deviation import (
     span_curvatures,
 )
 from worker.dst.errors import DstError, ResourceLimitExceeded, TessellationError
-from worker.dst.exact import FaceEval
 from worker.dst.forked import Task, TaskDied, TaskGroup
 from worker.dst.meshops import edge_defects, repeated_corner, signed_volume
 from worker.dst.params import SliceParams
@@ -65,14 +60,19 @@ from worker.dst.pipeline import (
 from worker.dst.planes import plan_planes
 from worker.dst.reference import ExactSections, closed_length, exact_sections
 from worker.dst.report_schema import InputInfo, Layer, MeshReport, ReferenceInfo, Report, Summary
+from worker.dst.report_warnings import (
+    mesh_warnings,
+    placement_warnings,
+    reference_fault_warning,
+    reference_gap_warnings,
+    self_crossing_warning,
+)
 from worker.dst.step_io import LoadedPart, occt_version, orient, read_step
 from worker.dst.stl_io import binary_stl_corners, merge_equal_vertices
-from worker.dst.topomesh import max_tolerance
 
 Progress = Callable[[str, float], None]
 
 
-# --- conventional baselines ------------------------------------------------------------------------
 # the exact reference: much finer than any mesh it judges
 REFERENCE_CHORD_MM = 1e-3
 REFERENCE_SEGMENT_MM = 2.0
@@ -89,20 +89,9 @@ REF_SPAN_COST = 0.23
 # (The exact reference niced less than the OCCT helper, as it holds up every mesh's measuring, made
 # the hemisphere's job ~0.3 s slower: there the 0.005 mm baseline is the longest chain.)
 BACKGROUND_NICE = 10
-VOLUME_WARN_REL = 0.01  # a mesh enclosing 1% more or less than the solid is worth a warning
-# A DST ring vertex this far from the exact reference (mm) is checked against the B-rep: lying on it,
-# it shows a part of the section the reference missed (its own topology mesh passed between the plane
-# and a nearby crest), not a deviation of the mesh. At most this many planes are checked.
-REFERENCE_GAP_MM = 2e-3
-REFERENCE_GAP_PLANES = 20
-# Each mesh's planes of largest chord_dev (and of perimeter_err) whose reference is checked for
-# crossing itself (``_reference_fault_warning``)
-REFERENCE_CHECK_PLANES = 5
-# ... among each piece's this many nearest pieces (bug27453_165-174 at z = 37.1: 3500 points of the
-# reference within 0.24 mm, 12 million pairs, 20 s for all of them)
-REFERENCE_PAIR_NEIGHBOURS = 16
 
 
+# --- conventional baselines ------------------------------------------------------------------------
 def conventional_mesh(
     part: LoadedPart, preset: Preset, *, parallel: bool = True
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -570,21 +559,23 @@ def _build_report(
             "(minimum_polygon_circumference), so they will not print whatever the mesh"
         )
     for r in results:
-        warnings.extend(_mesh_warnings(r))
+        warnings.extend(mesh_warnings(r))
     for m in todo:
         if m.kind == "dst" and (
-            note := _self_crossing_warning(
+            note := self_crossing_warning(
                 [p for piece in measured[id(m)] for p in piece.pockets], planes_z, params.chord_error
             )
         ):
             warnings.append(note)
     for m, r in zip(todo, results, strict=True):
         if m.kind == "dst":
-            warnings.extend(_reference_gaps(part, m, r, ref_set, heights, ref.zmin, ref.flat_planes))
-    if fault := _reference_fault_warning(ref.loops, results, planes_z, params.chord_error, chord):
+            warnings.extend(
+                reference_gap_warnings(part, placed[id(m)], r, ref_set, heights, ref.zmin, ref.flat_planes)
+            )
+    if fault := reference_fault_warning(ref.loops, results, planes_z, params.chord_error, chord):
         warnings.append(fault)
     box_lo, box_hi = occt.xy_box
-    warnings.extend(_placement_warnings(todo, box_lo, box_hi))
+    warnings.extend(placement_warnings(todo, box_lo, box_hi))
 
     report("done", 1.0)
     return Report(
@@ -880,233 +871,6 @@ def _ratios(s: Summary, dst: Summary) -> dict[str, float | None]:
     ):
         a, b = getattr(s, key), getattr(dst, key)
         out[key] = a / b if a is not None and b else None
-    return out
-
-
-def _reference_gaps(
-    part: LoadedPart,
-    dst: MeshInput,
-    result: MeshReport,
-    ref_set: SegmentSet,
-    heights: np.ndarray,
-    zmin: float,
-    flat_planes: list[int],
-) -> list[str]:
-    """Warnings for the planes where DST's ring vertices lie more than ``REFERENCE_GAP_MM`` from the
-    exact reference although the farthest of them lies on the B-rep (a ring vertex is an exact B-rep
-    point on its plane, stored as float32): where it is farther from the reference than its face's
-    edge tolerances, the reference misses part of the section; where it is within them, the file's
-    faces and edges disagree by that much there, and the section is only defined to that tolerance.
-    (A vertex on no face is the mesh's own deviation: no warning.)"""
-    flat = set(flat_planes)
-    suspect = [
-        layer.index
-        for layer in sorted(result.layers, key=lambda layer: -(layer.vertex_dev or 0.0))
-        if (layer.vertex_dev or 0.0) > REFERENCE_GAP_MM and layer.index not in flat
-    ][:REFERENCE_GAP_PLANES]
-    if not suspect:
-        return []
-    js = np.array(sorted(suspect))
-    v, tr = _on_bed(dst)
-    cut = cut_mesh(v, tr, heights[js])
-    plane = js[cut.vertex_plane]
-    d = ref_set.distance(cut.vertices, plane)
-    faces = _faces_with_boxes(part)
-    gaps, loose = [], []  # (plane, distance[, the face's edge tolerance])
-    for k, j in enumerate(js.tolist()):
-        mine = np.flatnonzero(cut.vertex_plane == k)
-        if not len(mine):
-            continue
-        far = mine[np.argmax(d[mine])]
-        x, y = cut.vertices[far]
-        p = (float(x), float(y), float(zmin + heights[j]))
-        # the vertex as its STL holds it: float32, a few ulps of its largest coordinate off the B-rep
-        tol = 4.0 * float(np.spacing(np.float32(max(abs(c) for c in p)))) + 1e-7
-        face_tol = _on_a_face(faces, p, tol)
-        if face_tol is None:
-            continue
-        # farther from the reference than the face's own edges are from it (the file's tolerance):
-        # in a file whose faces and edges disagree, both may be on "the B-rep" and still differ
-        if d[far] > face_tol:
-            gaps.append((j, float(d[far])))
-        else:
-            loose.append((j, float(d[far]), face_tol))
-    out = []
-    if gaps:
-        worst = max(gaps, key=lambda g: g[1])
-        planes = ", ".join(str(j) for j, _ in gaps)
-        out.append(
-            f"the exact reference misses part of the section at {len(gaps)} plane(s) ({planes}; the largest "
-            f"at plane {worst[0]}, z = {result.layers[worst[0]].z:.4f} mm): a DST ring vertex there lies on "
-            f"a face of the B-rep yet {worst[1]:.3g} mm from the reference, more than that face's edge "
-            "tolerances (the reference's own topology mesh passed between the plane and a crest close to "
-            "it). At those planes the DST mesh's vertex_dev and chord_dev measure the reference's gap, not "
-            "the mesh, and every mesh's numbers are uncertain by as much"
-        )
-    if loose:
-        worst = max(loose, key=lambda g: g[1])
-        planes = ", ".join(str(j) for j, _, _ in loose)
-        out.append(
-            f"the file is exact only to its tolerances at {len(loose)} plane(s) ({planes}; the largest at "
-            f"plane {worst[0]}, z = {result.layers[worst[0]].z:.4f} mm): a DST ring vertex there lies on a "
-            f"face of the B-rep yet {worst[1]:.3g} mm from the exact reference, within the "
-            f"{worst[2]:.3g} mm tolerance of that face's edges (its boundary and its neighbours' disagree "
-            "by up to that much, so both sections lie on the B-rep). There the DST mesh's vertex_dev and "
-            "chord_dev measure the file's tolerance, not the mesh"
-        )
-    return out
-
-
-@dataclass
-class _FaceProbe:
-    """A face, its box grown by 0.001 mm (more than any point's float32 rounding ``_on_a_face``
-    allows: a filter, the projection decides), and its projector and trim test, made when first
-    needed and then kept (a projector builds a grid over its surface on first use)."""
-
-    face: TopoDS_Face
-    box: Bnd_Box
-    _surface: ShapeAnalysis_Surface | None = None
-    _eval: FaceEval | None = None
-
-    def on_face(self, q: gp_Pnt, tol: float) -> bool:
-        """Does ``q`` lie within ``tol`` of the surface, inside the face's trim?"""
-        if self.box.IsOut(q):
-            return False
-        if self._surface is None:
-            self._surface = ShapeAnalysis_Surface(BRep_Tool.Surface_s(self.face))
-            self._eval = FaceEval(BRepAdaptor_Surface(self.face))
-        u, v = self._surface.ValueOfUV(q, tol).Coord()
-        return self._surface.Gap() <= tol and self._eval.contains(u, v, tol=1e-6)
-
-
-def _faces_with_boxes(part: LoadedPart) -> list[_FaceProbe]:
-    out = []
-    exp = TopExp_Explorer(part.compound, TopAbs_FACE)
-    while exp.More():
-        face = TopoDS.Face(exp.Current())
-        exp.Next()
-        box = Bnd_Box()
-        BRepBndLib.Add_s(face, box, False)
-        box.Enlarge(1e-3)
-        out.append(_FaceProbe(face, box))
-    return out
-
-
-def _on_a_face(faces: list[_FaceProbe], p: tuple[float, float, float], tol: float) -> float | None:
-    """If ``p`` lies within ``tol`` of a face's surface, inside that face's trim: the largest
-    tolerance of that face's edges (how far its boundary may be from its neighbours'); else None. (A
-    point on an edge its faces do not meet, in a file with large edge tolerances, is not on a face.)"""
-    q = gp_Pnt(*p)
-    for probe in faces:
-        if probe.on_face(q, tol):
-            return max_tolerance(probe.face, TopAbs_EDGE)
-    return None
-
-
-def _self_crossing_warning(
-    pockets: list[tuple[int, float, float]], planes_z: np.ndarray, chord: float
-) -> str | None:
-    """The warning for a DST mesh whose contour crosses itself round more than a chord-budget
-    square at some plane (``cuts.self_crossings``; bow ties of points out of order by
-    micrometres, with no such pocket, are left out)."""
-    big = [(j, area, length) for j, area, length in pockets if area > chord * chord]
-    if not big:
-        return None
-    j, area, length = max(big, key=lambda p: p[1])
-    planes = sorted({p[0] for p in big})
-    size = "a strip where the contour turns over" if not np.isfinite(area) else f"{area:.3g} mm^2"
-    return (
-        f"the DST mesh's contour crosses itself at {len(planes)} plane(s) (the largest pocket: {size}, "
-        f"at z = {planes_z[j]:.4f} mm): a fault of this build (its ring out of order there, or a strip "
-        "of its triangles folded over) that slicers see as a self-intersecting outline, and that the "
-        "per-layer deviations need not show"
-    )
-
-
-def _reference_fault_warning(
-    loops: list[list[np.ndarray]],
-    results: list[MeshReport],
-    planes_z: np.ndarray,
-    chord_error: float,
-    resolution: float,
-) -> str | None:
-    """The warning for an exact reference that crosses itself round more than a chord-budget square
-    (``cuts.loop_self_crossings``: the pockets ``self_crossings`` finds) at a plane that holds a
-    mesh's largest deviations: its points are exact, but out of order there (a plane grazing a crest,
-    or passing a saddle, where the sampler's traces fail), and the meshes' chord_dev and perimeter_err
-    at that plane may measure the reference. Looked for where it matters and is cheap: each mesh's
-    ``REFERENCE_CHECK_PLANES`` planes of largest chord_dev and of largest perimeter_err, and every
-    plane where DST is over its budget (a search of every plane costs 0.2 s on ec_soapbox-A)."""
-    check: set[int] = set()
-    for r in results:
-        chord_dev = np.array([np.nan if x.chord_dev is None else x.chord_dev for x in r.layers])
-        perimeter = np.array([np.nan if x.perimeter_err is None else x.perimeter_err for x in r.layers])
-        for values in (chord_dev, perimeter):
-            ok = np.flatnonzero(np.isfinite(values))
-            check.update(ok[np.argsort(-values[ok], kind="stable")[:REFERENCE_CHECK_PLANES]].tolist())
-        if r.kind == "dst":
-            check.update(np.flatnonzero(chord_dev > chord_error + resolution + 1e-6).tolist())
-    # thinned to a point per tenth of the budget along each loop: a reference tangled into
-    # thousands of points micrometres apart (trj7 at z = 56.9: 7000 at one plane) otherwise takes
-    # seconds in the pair search, for pockets within that tenth of their own size
-    step = 0.1 * chord_error
-    pockets = loop_self_crossings(
-        [[_thinned(p, step) for p in ls] if j in check else [] for j, ls in enumerate(loops)],
-        nearest=REFERENCE_PAIR_NEIGHBOURS,
-    )
-    big = [(j, area) for j, area, _ in pockets if area > chord_error * chord_error]
-    if not big:
-        return None
-    j, area = max(big, key=lambda p: p[1])
-    planes = sorted({p[0] for p in big})
-    return (  # (closed loops in order: every pocket is finite)
-        f"the report's exact reference is out of order at {len(planes)} plane(s) that hold the meshes' "
-        f"largest deviations (the largest pocket between its crossing segments: {area:.3g} mm^2, at z = "
-        f"{planes_z[j]:.4f} mm; plane(s) {', '.join(map(str, planes[:10]))}): its points lie on the "
-        "section but are joined in the wrong order there (a plane grazing a crest or passing near a "
-        "saddle, or faces and edges that disagree), so the meshes' chord_dev and perimeter_err at those "
-        "planes, and the summaries they set, may measure the reference's fault rather than the meshes'"
-    )
-
-
-def _thinned(loop: np.ndarray, step: float) -> np.ndarray:
-    """The closed polyline ``loop`` with only the first of its points in each ``step`` of arc length."""
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(loop, axis=0), axis=1))])
-    return loop[np.concatenate([[True], np.diff(np.floor(s / step)) > 0])]
-
-
-def _mesh_warnings(r: MeshReport) -> list[str]:
-    out = []
-    s = r.summary
-    if s.layers_missing:
-        out.append(
-            f"{r.name}: {s.layers_missing} layer(s) where the part has a section but the mesh has none"
-        )
-    if s.layers_extra:
-        out.append(f"{r.name}: {s.layers_extra} layer(s) where the mesh has a section but the part has none")
-    if not r.watertight:
-        out.append(
-            f"{r.name}: the mesh is not watertight ({r.open_edges} open and {r.nonmanifold_edges} non-manifold "
-            "edges); slicers must guess its contours"
-        )
-    if r.volume_rel_err is not None and abs(r.volume_rel_err) > VOLUME_WARN_REL:
-        out.append(f"{r.name}: encloses {100 * r.volume_rel_err:+.1f}% of the exact volume")
-    return out
-
-
-def _placement_warnings(todo: Sequence[MeshInput], lo: tuple, hi: tuple) -> list[str]:
-    out = []
-    size = max(hi[0] - lo[0], hi[1] - lo[1])
-    for m in todo:
-        if m.kind != "input" or not len(m.vertices):
-            continue
-        mlo, mhi = m.vertices[:, :2].min(axis=0), m.vertices[:, :2].max(axis=0)
-        off = float(np.max(np.abs(np.concatenate([mlo - lo, mhi - hi]))))
-        if off > max(1.0, 0.05 * size):
-            out.append(
-                f"{m.name}: its x/y extent differs from the part's by up to {off:.3g} mm: is it placed in the "
-                "STEP file's coordinates (not centred or moved by a slicer)? Distances assume it is"
-            )
     return out
 
 
