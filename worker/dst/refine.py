@@ -678,7 +678,8 @@ class RunRefiner:
         Between the three points the largest distance is taken from the parabola through them (a
         curve whose bend is off-centre peaks between samples: bug24595's 0.028 mm over 0.025), and
         beyond them from the lines through the outer two (a line running into a small fillet at
-        the segment's end: trj4_k1_top's 0.027).
+        the segment's end: trj4_k1_top's 0.027). Where one quarter point is lost (it lands past the
+        segment's end), the midpoint and the other give the peak (``_two_sample_peak``).
         """
         ri, sa, sb, pa, pb = pending
         e = self.chord
@@ -711,6 +712,15 @@ class RunRefiner:
             np.stack([q_sag[:n], sag[ci], q_sag[n:]], axis=1),
             ok[:n] & ok[n:],
         )
+        # one quarter point off the chord (the path overshooting the segment's end round a tight
+        # bend): the midpoint and the other quarter point give the peak (Ventilator turned (105.4,
+        # 22.5, -109.3) at z = 78.9: samples 0.0187 and 0.0242 at t = 0.24 and 0.62 of a 0.197 mm
+        # segment round a 0.19 mm bend, whose curve peaks at 0.0253 near its middle)
+        one = ok[:n] ^ ok[n:]
+        if one.any():
+            pair_t = np.stack([t[ci], np.where(ok[:n], t_q[:n], t_q[n:])], axis=1)
+            pair_f = np.stack([sag[ci], np.where(ok[:n], q_sag[:n], q_sag[n:])], axis=1)
+            peak = np.maximum(peak, np.where(one, _two_sample_peak(pair_t, pair_f), 0.0))
         np.maximum.at(sag, q, q_sag)
         sag[ci] = np.maximum(sag[ci], peak)
         self.stats.quarter_checks += n
@@ -938,10 +948,26 @@ def _parabola_peak(t: np.ndarray, f: np.ndarray, ok: np.ndarray) -> np.ndarray:
     return np.maximum(out, np.where(ok & spaced, np.maximum(start, end), 0.0))
 
 
-# where ``_parabola_peak``'s quartic is evaluated; samples this close to an end give it no shape
+def _two_sample_peak(t: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Row-wise estimate of the largest distance of a segment's curve from its chord from two samples
+    (t, f) ((k, 2), any order of t): the peak of t (1 - t) g(t), g the line through f_i / (t_i (1 -
+    t_i)), zero at the chord's ends as the curve is (a circular arc's distance is c t (1 - t) to
+    second order: g constant), capped at 1.5 times the larger sample. 0 where the samples are not
+    apart or lie within ``_QUARTIC_END`` of an end (no shape there)."""
+    t1, t2 = t[:, 0], t[:, 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        g1, g2 = f[:, 0] / (t1 * (1.0 - t1)), f[:, 1] / (t2 * (1.0 - t2))
+        slope = (g2 - g1) / (t2 - t1)
+        x = _QUARTIC_GRID[None, :]
+        value = (x * (1.0 - x) * (g1[:, None] + slope[:, None] * (x - t1[:, None]))).max(axis=1)
+    lo, hi = np.minimum(t1, t2), np.maximum(t1, t2)
+    good = (hi - lo > 1e-9) & (lo > _QUARTIC_END) & (hi < 1.0 - _QUARTIC_END) & np.isfinite(value)
+    return np.where(good, np.minimum(value, 1.5 * f.max(axis=1)), 0.0)
+
+
+# where ``_parabola_peak``'s quartic (and ``_two_sample_peak``'s cubic) is evaluated; samples this
+# close to an end give it no shape
 _QUARTIC_GRID = np.linspace(0.0, 1.0, 65)
-
-
 _QUARTIC_END = 0.02
 
 

@@ -538,6 +538,24 @@ def test_a_segment_round_a_deep_bend_is_split_whatever_its_samples_say():
 
 
 @pytest.mark.slow
+def test_a_segment_whose_quarter_point_is_lost_round_a_tight_bend_is_estimated_from_the_other():
+    """Ventilator turned to (105.4, 22.5, -109.3), z = 78.9: a 0.197 mm ring segment round a ~0.19 mm
+    bend had its midpoint (placed along the seed path) at t = 0.24 of its chord, 0.0187 mm from it,
+    one quarter point past its end and the other at t = 0.62, 0.0242 mm: no parabola, and the
+    larger sample passed, while the curve lay 0.0253 mm from the segment near its middle (budget
+    0.025). The two samples now give the peak of t (1 - t) g(t) (``_two_sample_peak``): every exact
+    point of the plane's section is within the budget of the ring."""
+    path = CORPUS / "freeform" / "Ventilator.stp"
+    if not path.is_file():
+        pytest.skip(f"the shared STEP corpus is not beside this checkout ({CORPUS})")
+    params = _params(path).model_copy(update=dict(zip(ROTATION_FIELDS, (105.4, 22.5, -109.3), strict=True)))
+    mesh = slice_step(path, params)
+    (j,) = np.flatnonzero(np.isclose(mesh.planes.z, 78.9))
+    d, _, pts = _exact_points_from_ring(mesh, mesh.planes.section_z[j : j + 1])
+    assert d.max() <= params.chord_error + 1e-6, pts[np.argmax(d)]
+
+
+@pytest.mark.slow
 def test_report_reference_keeps_a_tongue_tip_its_trace_between_suspects_would_lose():
     """boxed_sphere turned to (-11.5, -70.9, -79.8): at four planes the reference (sampled to 1 um,
     where the DST build's 25 um accepts longer segments) passed a tongue's tip several times over
