@@ -679,7 +679,7 @@ class RunRefiner:
         curve whose bend is off-centre peaks between samples: bug24595's 0.028 mm over 0.025), and
         beyond them from the lines through the outer two (a line running into a small fillet at
         the segment's end: trj4_k1_top's 0.027). Where one quarter point is lost (it lands past the
-        segment's end), the midpoint and the other give the peak (``_two_sample_peak``).
+        segment's end), the midpoint and the other give the peak (``_zero_end_peak``).
         """
         ri, sa, sb, pa, pb = pending
         e = self.chord
@@ -720,7 +720,7 @@ class RunRefiner:
         if one.any():
             pair_t = np.stack([t[ci], np.where(ok[:n], t_q[:n], t_q[n:])], axis=1)
             pair_f = np.stack([sag[ci], np.where(ok[:n], q_sag[:n], q_sag[n:])], axis=1)
-            peak = np.maximum(peak, np.where(one, _two_sample_peak(pair_t, pair_f), 0.0))
+            peak = np.maximum(peak, np.where(one, _zero_end_peak(pair_t, pair_f), 0.0))
         np.maximum.at(sag, q, q_sag)
         sag[ci] = np.maximum(sag[ci], peak)
         self.stats.quarter_checks += n
@@ -930,43 +930,43 @@ def _parabola_peak(t: np.ndarray, f: np.ndarray, ok: np.ndarray) -> np.ndarray:
         # rises there after three samples on the straight part
         start = np.where(f1 > f2, f1 + (f1 - f2) * np.clip(t1, 0.0, 1.0) / (t2 - t1), 0.0)
         end = np.where(f3 > f2, f3 + (f3 - f2) * np.clip(1.0 - t3, 0.0, 1.0) / (t3 - t2), 0.0)
-        # the quartic t (1 - t) g(t), g the parabola through g_i = f_i / (t_i (1 - t_i)), on a grid
-        g = f / (t * (1.0 - t))
-        x = _QUARTIC_GRID[None, :]
-        lag = [
-            (x - t2[:, None]) * (x - t3[:, None]) / ((t1 - t2) * (t1 - t3))[:, None],
-            (x - t1[:, None]) * (x - t3[:, None]) / ((t2 - t1) * (t2 - t3))[:, None],
-            (x - t1[:, None]) * (x - t2[:, None]) / ((t3 - t1) * (t3 - t2))[:, None],
-        ]
-        quartic = (x * (1.0 - x) * sum(g[:, i, None] * lag[i] for i in range(3))).max(axis=1)
     spaced = (t2 - t1 > 1e-9) & (t3 - t2 > 1e-9)
     good = ok & (a < 0) & (ts > t1) & (ts < t3) & spaced & np.isfinite(peak)
     cap = 1.5 * f.max(axis=1)
     out = np.where(good, np.minimum(peak, cap), 0.0)
-    inside = ok & spaced & (t1 > _QUARTIC_END) & (t3 < 1.0 - _QUARTIC_END) & np.isfinite(quartic)
-    out = np.maximum(out, np.where(inside, np.minimum(quartic, cap), 0.0))
+    out = np.maximum(out, np.where(ok, _zero_end_peak(t, f), 0.0))  # the quartic
     return np.maximum(out, np.where(ok & spaced, np.maximum(start, end), 0.0))
 
 
-def _two_sample_peak(t: np.ndarray, f: np.ndarray) -> np.ndarray:
-    """Row-wise estimate of the largest distance of a segment's curve from its chord from two samples
-    (t, f) ((k, 2), any order of t): the peak of t (1 - t) g(t), g the line through f_i / (t_i (1 -
-    t_i)), zero at the chord's ends as the curve is (a circular arc's distance is c t (1 - t) to
-    second order: g constant), capped at 1.5 times the larger sample. 0 where the samples are not
-    apart or lie within ``_QUARTIC_END`` of an end (no shape there)."""
-    t1, t2 = t[:, 0], t[:, 1]
+def _zero_end_peak(t: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Row-wise estimate of the largest distance of a segment's curve from its chord from k samples
+    (t, f) ((n, k), t ascending or not): the peak of t (1 - t) g(t), g the polynomial of degree k - 1
+    through g_i = f_i / (t_i (1 - t_i)), zero at the chord's ends as the curve is (a circular arc's
+    distance is c t (1 - t) to second order: g constant), evaluated on a grid and capped at 1.5 times
+    the largest sample. Three samples give ``_parabola_peak``'s quartic; two (a quarter point lost)
+    a cubic. 0 where two samples are not apart or one lies within ``_QUARTIC_END`` of an end (no
+    shape there)."""
+    order = np.argsort(t, axis=1)
+    t, f = np.take_along_axis(t, order, axis=1), np.take_along_axis(f, order, axis=1)
+    k = t.shape[1]
+    x = _QUARTIC_GRID[None, :]
     with np.errstate(divide="ignore", invalid="ignore"):
-        g1, g2 = f[:, 0] / (t1 * (1.0 - t1)), f[:, 1] / (t2 * (1.0 - t2))
-        slope = (g2 - g1) / (t2 - t1)
-        x = _QUARTIC_GRID[None, :]
-        value = (x * (1.0 - x) * (g1[:, None] + slope[:, None] * (x - t1[:, None]))).max(axis=1)
-    lo, hi = np.minimum(t1, t2), np.maximum(t1, t2)
-    good = (hi - lo > 1e-9) & (lo > _QUARTIC_END) & (hi < 1.0 - _QUARTIC_END) & np.isfinite(value)
+        g = f / (t * (1.0 - t))
+        lag = []  # the Lagrange basis on the samples, on the grid
+        for i in range(k):
+            num, den = 1.0, 1.0
+            for j in range(k):
+                if j != i:
+                    num = num * (x - t[:, j, None])
+                    den = den * (t[:, i] - t[:, j])
+            lag.append(num / den[:, None])
+        value = (x * (1.0 - x) * sum(g[:, i, None] * lag[i] for i in range(k))).max(axis=1)
+    spaced = (np.diff(t, axis=1) > 1e-9).all(axis=1)
+    good = spaced & (t[:, 0] > _QUARTIC_END) & (t[:, -1] < 1.0 - _QUARTIC_END) & np.isfinite(value)
     return np.where(good, np.minimum(value, 1.5 * f.max(axis=1)), 0.0)
 
 
-# where ``_parabola_peak``'s quartic (and ``_two_sample_peak``'s cubic) is evaluated; samples this
-# close to an end give it no shape
+# where ``_zero_end_peak`` is evaluated; samples this close to an end give it no shape
 _QUARTIC_GRID = np.linspace(0.0, 1.0, 65)
 _QUARTIC_END = 0.02
 

@@ -1,8 +1,9 @@
 """The deviation report: DST and conventional meshes cut at the slicer's planes, against the exact B-rep.
 
-``build_report`` is the whole computation; the JSON contract is the pydantic model ``Report``
-in ``report_schema`` (``Report.model_json_schema()`` documents it). Every mesh is measured as its STL holds it (float32
-coordinates) and as a slicer places it (lowest vertex dropped to z = 0, x and y unchanged).
+``build_report`` is the whole computation; the JSON contract is the pydantic model ``Report`` in
+``report_schema`` (``Report.model_json_schema()`` documents it). Every mesh is measured as its STL
+holds it (float32 coordinates) and as a slicer places it (lowest vertex dropped to z = 0, x and y
+unchanged).
 """
 
 from __future__ import annotations

@@ -556,12 +556,12 @@ def test_a_segments_largest_distance_is_estimated_where_its_bend_is_off_centre()
 
 
 def test_a_segments_largest_distance_is_estimated_from_two_samples_where_a_quarter_point_is_lost():
-    """``_two_sample_peak``: a segment round a tight bend whose midpoint (placed along the seed path)
+    """``_zero_end_peak``: a segment round a tight bend whose midpoint (placed along the seed path)
     lies at t = 0.24 of its chord and one of whose quarter points lands past its end (saying nothing),
     the other at t = 0.62. An arc of 57 degrees over the chord: the larger sample is 5% below the
     arc's sag, the estimate within 1% of it (Ventilator turned (105.4, 22.5, -109.3): 0.0242 and
     0.0253). Samples too close together or to an end say nothing (0)."""
-    from worker.dst.refine import _two_sample_peak
+    from worker.dst.refine import _zero_end_peak
 
     half = math.radians(28.5)  # the arc of radius 1 from -28.5 to +28.5 degrees over its chord
 
@@ -571,7 +571,7 @@ def test_a_segments_largest_distance_is_estimated_from_two_samples_where_a_quart
 
     sag = 1.0 - math.cos(half)
     t = np.array([[0.24, 0.62], [0.62, 0.24], [0.3, 0.3], [0.01, 0.5]])
-    est = _two_sample_peak(t, sample(t))
+    est = _zero_end_peak(t, sample(t))
     assert sample(t[0]).max() < 0.96 * sag
     assert est[0] == pytest.approx(sag, rel=1e-2) and est[1] == est[0]
     assert est[2] == 0.0 and est[3] == 0.0
