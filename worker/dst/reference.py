@@ -252,7 +252,14 @@ def _sample_loops(mesh, topo, loop_ids: list[int], chord: float, segment_length:
     pool = VertexPool()
     # halving: about half the Newton solves of checking every span at the chord (see RingSampler)
     sampler = RingSampler(
-        mesh, topo, pool, segment_length=segment_length, chord_error=chord, keep_crossings=False, halving=True
+        mesh,
+        topo,
+        pool,
+        segment_length=segment_length,
+        chord_error=chord,
+        keep_crossings=False,
+        halving=True,
+        gap_ends=False,
     )
     annulus = topo.comp_is_annulus
     ids = np.asarray(loop_ids, dtype=np.int64)

@@ -71,6 +71,11 @@ END_TANGENT_ITER = 6  # Gauss-Newton steps placing a run's end vertex on its fac
 # ... where it lies within this of the face (a file's tolerance): the face's tangent
 END_TANGENT_TOL_MM = 0.01
 END_TANGENT_MIN_SLOPE = 1e-3  # a face steeper than this (normal's horizontal share) has a section tangent
+# A run's end vertex farther than this many chord budgets from its face's section curve (the face
+# and the edge the vertex lies on apart within the file's tolerance, on a shallow face) gets the
+# curve's point nearest it as the run's next point (``_gap_end_points``)
+GAP_END_REL = 0.25
+_GAP_POINT = -3  # (vertex id placeholder of a point added by ``_gap_end_points``)
 MAX_REFINE_ROUNDS = 40  # halving a segment 24 times takes 1 m down to 60 nm: still failing means broken
 
 
@@ -93,6 +98,9 @@ class _Run:
     # the seed path is a trace along the exact curve (``_excursion_runs``): a point placed by arc length
     # along it is on the right piece of the curve even where it projects beyond its segment's chord
     traced: bool = False
+    # an end vertex off the face's curve gets the curve's nearest point next to it (``_add_gap_points``;
+    # the runs of free loops: a pinned loop's kept triangles take its segments' points as they are)
+    gap_ends: bool = False
 
 
 class RunRefiner:
@@ -168,6 +176,7 @@ class RunRefiner:
                         run.plane,
                         run.moved,
                         run.traced,
+                        run.gap_ends,
                     )
                 )
                 owner.append(i)
@@ -457,6 +466,16 @@ class RunRefiner:
         # quarter points, and its new end segments again, until they leave as a shallow arc would.
         tangents = np.full((n_runs, 2, 2), np.nan)  # at each run's start and end, where needed
         known = np.zeros((n_runs, 2), dtype=bool)
+        # First, a run's end vertex off its face's section curve (a face and the edge the vertex lies
+        # on apart within the file's tolerance, on a shallow face: bug24595_281390 turned (157.5,
+        # -47.8, -129.9) at z = 95.7, a corner 5.6 um above face 3, which rises 0.16 there, its curve
+        # 0.035 mm from the corner) joins the curve where the curve comes nearest it, and the segment
+        # from the corner to the next point passes that place by up to the distance: that point of
+        # the curve is added next to the corner (``_add_gap_points``).
+        if self.gap_ends and any(r.gap_ends for r in runs):
+            self._add_gap_points(
+                runs, lengths, run_all, s_all, xyz_all, uv_all, vid_all, tangents, known, refine
+            )
         forced: set[tuple[int, float, float]] = set()
         for _ in range(MAX_END_BEND_ROUNDS):
             ri, s_, xyz = np.concatenate(run_all), np.concatenate(s_all), np.concatenate(xyz_all)
@@ -466,7 +485,7 @@ class RunRefiner:
             run, end = ends[2:]
             todo = ~known[run, end]
             run, end = run[todo], end[todo]
-            tangents[run, end] = self._end_tangents([runs[k] for k in run.tolist()], end)
+            tangents[run, end] = self._end_tangents([runs[k] for k in run.tolist()], end)[0]
             known[run, end] = True
             a, b = _end_bend_segments(xyz[order], ends, tangents, e)
             a, b = order[a], order[b]
@@ -490,7 +509,8 @@ class RunRefiner:
         for _ in range(MAX_INFLECTION_ROUNDS):
             ri, s_, xyz = np.concatenate(run_all), np.concatenate(s_all), np.concatenate(xyz_all)
             order = np.lexsort((s_, ri))
-            inflected = _inflected_segments(ri[order], xyz[order], after)
+            gap_pt = np.concatenate(vid_all)[order] == _GAP_POINT
+            inflected = _inflected_segments(ri[order], xyz[order], after, gap_pt if gap_pt.any() else None)
             if checked:
                 new = order >= checked
                 near = new | np.roll(new, 1) | np.roll(new, -1)
@@ -536,10 +556,65 @@ class RunRefiner:
             d = np.where(spans, np.linalg.norm(xyz[1:] - xyz[:-1], axis=1), 0.0)
             self._record_gaps(d > L, d, xyz[:-1], xyz[1:], run_z[ri[:-1]], run_face[ri[:-1]])
         new = np.flatnonzero(vid < 0)
+        gap_pt = new[vid[new] == _GAP_POINT]
         vid[new] = self.pool.extend(xyz[new, :2], run_z[ri[new]], run_plane[ri[new]])
+        # where the curve meets the jump from a run's end vertex off it (the ring turns there)
+        self.gap_vids.update(vid[gap_pt].tolist())
         bounds = np.searchsorted(ri, np.arange(n_runs + 1))
         ids = vid.tolist()
         return [ids[bounds[i] : bounds[i + 1]] for i in range(n_runs)]
+
+    def _add_gap_points(
+        self, runs, lengths, run_all, s_all, xyz_all, uv_all, vid_all, tangents, known, refine
+    ):
+        """``_sample_pieces``' points (``run_all`` ... ``vid_all``, appended to) with the section
+        curve's point nearest each end vertex (of a run with ``gap_ends``) that lies off its face's
+        curve by more than GAP_END_REL chord budgets (``_gap_end_points``), and the segment from each
+        such point on checked at its quarter points too (``refine``). ``tangents`` and ``known`` (the
+        run ends' section tangents) are filled in for those runs' ends of segments longer than the
+        chord (NaN where a point was added: the end's tangent is not the curve's)."""
+        e = self.chord
+        ri, s_, xyz = np.concatenate(run_all), np.concatenate(s_all), np.concatenate(xyz_all)
+        order = np.lexsort((s_, ri))
+        a, b, run, end = _end_segments(ri[order], xyz[order], e)
+        mine = np.array([runs[k].gap_ends for k in run.tolist()], dtype=bool)
+        a, b, run, end = a[mine], b[mine], run[mine], end[mine]
+        tangents[run, end], foot_uv, off = self._end_tangents(
+            [runs[k] for k in run.tolist()], end, offsets=True
+        )
+        known[run, end] = True
+        far = np.flatnonzero(off > GAP_END_REL * e)
+        if not len(far):
+            return
+        run, end, a, b = run[far], end[far], order[a[far]], order[b[far]]
+        g_xyz, g_ok, g_uv = self._gap_end_points(runs, run, end, foot_uv[far], off[far])
+        if not g_ok.any():
+            return
+        run, end, inner = run[g_ok], end[g_ok], np.where(end == 0, b, a)[g_ok]  # (the segment's other point)
+        tangents[run, end] = np.nan
+        # next to the end in s (a segment between the two is a gap if it is ever found over budget)
+        at = np.where(end == 0, 0.0, lengths[run])
+        ds = np.minimum(0.5 * GAP_SPAN_REL * np.maximum(lengths[run], 1.0), 0.25 * np.abs(s_[inner] - at))
+        first_new = len(ri)
+        run_all.append(run)
+        s_all.append(np.where(end == 0, at + ds, at - ds))
+        xyz_all.append(g_xyz[g_ok])
+        uv_all.append(g_uv[g_ok])
+        vid_all.append(np.full(len(run), _GAP_POINT, dtype=np.int64))
+        self.stats.gap_ends += len(run)
+        ri, s_, xyz = np.concatenate(run_all), np.concatenate(s_all), np.concatenate(xyz_all)
+        order = np.lexsort((s_, ri))
+        pos = np.empty(len(order), dtype=np.int64)
+        pos[order] = np.arange(len(order))
+        p = pos[first_new:]  # the added points' places in run order, and their segments on the curve
+        pairs = sorted(
+            set(
+                zip(np.where(end == 0, p, p - 1).tolist(), np.where(end == 0, p + 1, p).tolist(), strict=True)
+            )
+        )
+        a, b = order[[q for q, _ in pairs]], order[[q for _, q in pairs]]
+        self.stats.end_bend_checks += len(a)
+        refine((ri[a], s_[a], s_[b], xyz[a], xyz[b]), forced=True)
 
     def _off_face_box(self, face: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """Mask of points whose face parameters lie beyond their face's (u, v) box."""
@@ -549,16 +624,23 @@ class RunRefiner:
         above = uv > box[:, [1, 3]] + tol
         return ((below | above) & chk).any(axis=1)
 
-    def _end_tangents(self, runs: list[_Run], end: np.ndarray) -> np.ndarray:
+    def _end_tangents(
+        self, runs: list[_Run], end: np.ndarray, offsets: bool = False
+    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
         """(k, 2): the unit xy tangent (either sense) of each of the runs' section curve at its start
         (``end`` 0) or end vertex (1), on the run's own face (its normal's horizontal part turned a
         quarter); NaN where the vertex is not found within END_TANGENT_TOL_MM of the face (a file's
         tolerance) or the face is nearly horizontal there. The vertices' (u, v) by batched
-        Gauss-Newton from the seed path's ends."""
+        Gauss-Newton from the seed path's ends.
+
+        With ``offsets``, also the (k, 2) (u, v) found (the vertex's foot on the face) and the (k,)
+        horizontal distance from the vertex to where one Newton step from its foot onto the run's
+        plane lands (the curve's nearest point to first order; inf where the face is horizontal at
+        the foot); else None for both."""
         k = len(runs)
         out = np.full((k, 2), np.nan)
         if not k:
-            return out
+            return out, np.zeros((0, 2)), np.zeros(0)
         face = np.array([r.face for r in runs])
         target = self.pool.xyz[[r.end if w else r.start for r, w in zip(runs, end.tolist(), strict=True)]]
         uv = np.array([r.uv[-1] if w else r.uv[0] for r, w in zip(runs, end.tolist(), strict=True)])
@@ -592,7 +674,43 @@ class RunRefiner:
         flat = np.hypot(normal[:, 0], normal[:, 1])
         ok = (gap <= END_TANGENT_TOL_MM) & (flat > END_TANGENT_MIN_SLOPE * size)
         out[ok] = np.column_stack([normal[ok, 1], -normal[ok, 0]]) / flat[ok, None]
-        return out
+        if not offsets:
+            return out, None, None
+        # the Newton step from the foot onto the plane: horizontally f n_z n_h / |n_h|^2 (unit normal)
+        res = self._d1(face, u, v, self._ads, p, du, dv)
+        n = np.cross(res[:, 3:6], res[:, 6:9])
+        n /= np.maximum(np.linalg.norm(n, axis=1), 1e-300)[:, None]
+        h2 = n[:, 0] ** 2 + n[:, 1] ** 2
+        zc = np.array([r.zc for r in runs])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            step_xy = ((res[:, 2] - zc) * n[:, 2] / h2)[:, None] * n[:, :2]
+            off = np.linalg.norm(res[:, :2] + step_xy - target[:, :2], axis=1)
+        return out, np.column_stack([u, v]), np.where(np.isfinite(off), off, np.inf)
+
+    def _gap_end_points(
+        self, runs: list[_Run], run: np.ndarray, end: np.ndarray, uv: np.ndarray, off: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The section curve's point nearest each run end vertex that lies off its face's curve
+        (``off``: its estimated distance, ``uv``: its foot on the face), by Newton onto the run's
+        plane from the foot: (k, 3) points, (k,) mask of those found, (k, 2) their (u, v). Found:
+        converged within 2 ``off`` + the chord of the vertex (the curve's point near it, not another
+        branch's), and inside the face's trim (the face's curve may run on the surface's extension
+        past the edge instead: bug24595_281390 turned (-119.7, -47.5, -168.3) at z = 43.5, a corner
+        0.033 mm from face 0's curve, which there lies 0.030 mm beyond the face; no point is added)."""
+        face = np.array([runs[r].face for r in run.tolist()])
+        zc = np.array([runs[r].zc for r in run.tolist()])
+        step = np.array([runs[r].max_step for r in run.tolist()])
+        xyz, ok, out_uv = self._newton(face, uv[:, 0].copy(), uv[:, 1].copy(), zc, step)
+        vid = np.array(
+            [runs[r].end if w else runs[r].start for r, w in zip(run.tolist(), end.tolist(), strict=True)]
+        )
+        dist = np.linalg.norm(np.nan_to_num(xyz[:, :2]) - self.pool.xyz[vid, :2], axis=1)
+        ok &= dist <= 2.0 * np.where(np.isfinite(off), off, 0.0) + self.chord
+        for i in np.flatnonzero(ok).tolist():
+            ok[i] = self.mesh.faces[face[i]].contains(
+                float(out_uv[i, 0]), float(out_uv[i, 1]), tol=TRIM_TOL_MM
+            )
+        return xyz, ok, out_uv
 
     def _midpoints_off_the_path(
         self, face, zc, step, mid, mid_ok, pa, pb, length, traced, mid_uv
@@ -1037,7 +1155,9 @@ def _run_successors(first: np.ndarray, last: np.ndarray) -> np.ndarray:
     return out
 
 
-def _inflected_segments(ri: np.ndarray, xyz: np.ndarray, after: np.ndarray | None = None) -> np.ndarray:
+def _inflected_segments(
+    ri: np.ndarray, xyz: np.ndarray, after: np.ndarray | None = None, gap: np.ndarray | None = None
+) -> np.ndarray:
     """The segments (index of their first point) of runs ``ri`` (points sorted by run and arc
     length, at ``xyz``) whose polyline turns one way at one end and the other way at the other: the
     curve has an inflection inside, where the midpoint can lie on the chord while the curve is off it
@@ -1046,7 +1166,9 @@ def _inflected_segments(ri: np.ndarray, xyz: np.ndarray, after: np.ndarray | Non
     of the way). At a run's end the turn is taken with the first segment of the run ``after`` it
     (``_run_successors``; runs numbered 0 .. n - 1, each with two points or more); a segment ending
     where that is not known counts as inflected. Turns of under 1e-9 rad count as none (a straight
-    line's points in a row)."""
+    line's points in a row). ``gap``: the points added next to run ends off their curve
+    (``_gap_end_points``): the turn there is not known, and the jump from the run's end to one is
+    no curve to check."""
     if len(ri) < 2:
         return np.empty(0, dtype=np.int64)
     d = np.diff(xyz[:, :2], axis=0)
@@ -1070,6 +1192,11 @@ def _inflected_segments(ri: np.ndarray, xyz: np.ndarray, after: np.ndarray | Non
         across = sign_of_turn(xyz[end, :2] - xyz[end - 1, :2], xyz[start + 1, :2] - xyz[start, :2])
         turn[end], turn[start] = across, across
         known[end], known[start] = True, True
+    if gap is not None:
+        known &= ~gap
+        run_end = np.concatenate([[True], ~same]) | np.concatenate([~same, [True]])
+        jump = np.concatenate([(gap[1:] & run_end[:-1]) | (gap[:-1] & run_end[1:]), [False]])
+        same = same & ~jump[:-1]
     k = np.flatnonzero(same & (length > 1e-9))
     flip = ~known[k] | ~known[k + 1] | (turn[k] * turn[k + 1] < 0)
     return k[flip]

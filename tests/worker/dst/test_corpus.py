@@ -518,6 +518,25 @@ def test_a_bend_next_to_a_corner_that_the_end_segments_midpoint_hides_is_split()
 
 
 @pytest.mark.slow
+def test_a_corner_off_its_faces_curve_is_joined_to_the_curve_where_it_comes_nearest():
+    """bug24595_281390 turned to (157.5, -47.8, -129.9), z = 95.7: a corner lies 5.6 um above face 3
+    (within the file's tolerance), whose surface rises 0.16 there, so the face's section curve runs
+    0.035 mm from the corner; the 0.62 mm ring segment from the corner to the next one passed its
+    midpoint and quarter checks while the curve lay 0.0348 mm from it (budget 0.025). The curve's
+    point nearest such a corner is added next to it (``stats['gap_ends']``): every exact point of
+    the plane's section is within the budget of the ring."""
+    path = CORPUS / "freeform" / "bug24595_281390.stp"
+    if not path.is_file():
+        pytest.skip(f"the shared STEP corpus is not beside this checkout ({CORPUS})")
+    params = _params(path).model_copy(update=dict(zip(ROTATION_FIELDS, (157.5, -47.8, -129.9), strict=True)))
+    mesh = slice_step(path, params)
+    assert mesh.stats["gap_ends"] > 0
+    (j,) = np.flatnonzero(np.isclose(mesh.planes.z, 95.7))
+    d, _, pts = _exact_points_from_ring(mesh, mesh.planes.section_z[j : j + 1])
+    assert d.max() <= params.chord_error + 1e-6, pts[np.argmax(d)]
+
+
+@pytest.mark.slow
 def test_a_segment_round_a_deep_bend_is_split_whatever_its_samples_say():
     """Ventilator turned to (-135.2, -164.2, -177.2), first plane (z = 0.1): a 0.117 mm ring segment
     round a ~0.035 mm bend was sampled at 0.022 mm at its midpoint, one of its quarter points landed

@@ -649,7 +649,7 @@ def test_a_runs_end_tangent_is_its_faces_section_tangent_at_the_corner(cone_samp
         _Run(cone, np.array([0.0, 1.0]), np.array([seeds[i], seeds[j]]), 0.5, vids[i], vids[j], 1, Z, 0)
         for i, j in ((0, 1), (2, 3))
     ]
-    got = sampler._end_tangents([runs[0], runs[0], runs[1], runs[1]], np.array([0, 1, 0, 1]))
+    got = sampler._end_tangents([runs[0], runs[0], runs[1], runs[1]], np.array([0, 1, 0, 1]))[0]
     for t, a in zip(got, angles, strict=False):
         assert abs(t[0] * _tangent(a)[1] - t[1] * _tangent(a)[0]) < 1e-9  # parallel
         assert np.hypot(*t) == pytest.approx(1.0)
@@ -686,3 +686,46 @@ def test_an_end_segment_leaving_its_corner_steeper_than_a_shallow_arc_is_told():
     assert (
         len(_end_bend_segments(arc, _end_segments(ri, arc), np.array([[[np.nan, np.nan], end_t]]), e)[0]) == 0
     )
+
+
+def test_a_run_end_off_its_faces_curve_gets_the_curves_nearest_point_next_to_it(cone_sampler):
+    """A run's end vertex that lies off its face's section curve (a corner on an edge the face meets
+    only within the file's tolerance: here 0.02 mm outside the circle of radius 7.5, at a 0.01 mm
+    chord budget) joins the curve where the curve comes nearest it: that point (the circle's, at the
+    vertex's angle) is added next to the vertex (``stats.gap_ends``), and the arc from it on is within
+    the budget of the ring (the runs of free loops). A sampler without ``gap_ends`` (the report's
+    reference) adds none: its segment checks split the end segment over and over towards that
+    point instead."""
+    from worker.dst.refine import _Run
+
+    sampler, cone, _ = cone_sampler
+    plain = RingSampler(
+        sampler.mesh, sampler.topo, VertexPool(), segment_length=1.0, chord_error=0.01, gap_ends=False
+    )
+    ev = sampler.mesh.faces[cone]
+    a0, a1, off = 0.3, 0.9, 0.02
+    start = _on_circle(a0) * np.array([1.0 + off / R_Z, 1.0 + off / R_Z, 1.0])
+    uv = np.array([ev.uv_near(tuple(_on_circle(a)), (0.0, 0.0)) for a in (a0, a1)])
+    foot = _on_circle(a0)
+    rings = []
+    for s in (sampler, plain):
+        vids = [s.pool.add(tuple(start), 0), s.pool.add(tuple(_on_circle(a1)), 0)]
+        before = s.stats.gap_ends
+        run = _Run(cone, np.array([0.0, R_Z * (a1 - a0)]), uv, 0.5, *vids, 1, Z, 0, gap_ends=True)
+        (ids,) = s._sample_runs([run])
+        assert ids[0] == vids[0] and ids[-1] == vids[1]
+        rings.append(s.pool.xyz[ids])
+        assert s.stats.gap_ends == before + (s is sampler)
+    ring, piled = rings
+    np.testing.assert_allclose(ring[1], foot, atol=1e-6)
+    arc = np.array([_on_circle(a) for a in np.linspace(a0, a1, 4001)])
+    d = np.min(
+        [
+            point_segment_distance(arc, np.broadcast_to(p, arc.shape), np.broadcast_to(q, arc.shape))
+            for p, q in zip(ring[1:-1], ring[2:], strict=True)
+        ],
+        axis=0,
+    )
+    assert d.max() <= sampler.chord
+    assert (np.linalg.norm(ring[:, :2] - foot[:2], axis=1) < 1e-3).sum() == 1
+    assert (np.linalg.norm(piled[:, :2] - foot[:2], axis=1) < 1e-3).sum() >= 10
