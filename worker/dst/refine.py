@@ -636,7 +636,8 @@ class RunRefiner:
         With ``offsets``, also the (k, 2) (u, v) found (the vertex's foot on the face) and the (k,)
         horizontal distance from the vertex to where one Newton step from its foot onto the run's
         plane lands (the curve's nearest point to first order; inf where the face is horizontal at
-        the foot); else None for both."""
+        the foot, NaN where the foot was not found: Gauss-Newton stuck or not converged); else None
+        for both."""
         k = len(runs)
         out = np.full((k, 2), np.nan)
         if not k:
@@ -650,6 +651,7 @@ class RunRefiner:
         normal = np.full((k, 3), np.nan)
         gap = np.full(k, np.inf)
         act = np.arange(k)
+        found = np.ones(k, dtype=bool)  # the foot converged (the nearest point of the surface)
         for _ in range(END_TANGENT_ITER):
             res = self._d1(face[act], u[act], v[act], self._ads, p, du, dv)
             r = res[:, :3] - target[act]
@@ -667,9 +669,11 @@ class RunRefiner:
             v[act] += stv * scale
             # converged (the step's move on the surface under a nanometre) or stuck: done
             move = np.linalg.norm(su * (stu * scale)[:, None] + sv * (stv * scale)[:, None], axis=1)
+            found[act[~ok]] = False
             act = act[ok & (move > 1e-9)]
             if not len(act):
                 break
+        found[act] = False
         size = np.linalg.norm(normal, axis=1)
         flat = np.hypot(normal[:, 0], normal[:, 1])
         ok = (gap <= END_TANGENT_TOL_MM) & (flat > END_TANGENT_MIN_SLOPE * size)
@@ -685,7 +689,8 @@ class RunRefiner:
         with np.errstate(divide="ignore", invalid="ignore"):
             step_xy = ((res[:, 2] - zc) * n[:, 2] / h2)[:, None] * n[:, :2]
             off = np.linalg.norm(res[:, :2] + step_xy - target[:, :2], axis=1)
-        return out, np.column_stack([u, v]), np.where(np.isfinite(off), off, np.inf)
+        off = np.where(np.isfinite(off), off, np.inf)
+        return out, np.column_stack([u, v]), np.where(found, off, np.nan)
 
     def _gap_end_points(
         self, runs: list[_Run], run: np.ndarray, end: np.ndarray, uv: np.ndarray, off: np.ndarray
