@@ -9,7 +9,9 @@ space. Then every segment is checked against the exact curve: the curve point ha
 exact for circles and measures the sagitta to second order in the segment length for other smooth
 curves; a segment whose midpoint may not show its largest distance (see ``_quarter_sags``) is also
 checked at its quarter points, a segment with an inflection inside (``_inflected_segments``) and a
-run's end segment leaving its corner too steeply (``_end_bend_segments``) again.
+run's end segment leaving its corner too steeply (``_end_bend_segments``) again. A run's end vertex
+lying off its face's curve (the face and the edge the vertex is on apart within the file's
+tolerance) gets the curve's point nearest it as the run's next point (``_add_gap_points``).
 
 All Newton solves of one batch of runs run together (numpy bookkeeping, one OCCT ``D1`` per point
 and iteration), which keeps the Python overhead per ring vertex to a few microseconds.
