@@ -589,7 +589,8 @@ class RunRefiner:
         if not len(far):
             return
         run, end, a, b = run[far], end[far], order[a[far]], order[b[far]]
-        g_xyz, g_ok, g_uv = self._gap_end_points(runs, run, end, foot_uv[far], off[far])
+        segment = np.linalg.norm(xyz[b, :2] - xyz[a, :2], axis=1)
+        g_xyz, g_ok, g_uv = self._gap_end_points(runs, run, end, foot_uv[far], off[far], 0.5 * segment)
         if not g_ok.any():
             return
         run, end, inner = run[g_ok], end[g_ok], np.where(end == 0, b, a)[g_ok]  # (the segment's other point)
@@ -638,8 +639,9 @@ class RunRefiner:
         With ``offsets``, also the (k, 2) (u, v) found (the vertex's foot on the face) and the (k,)
         horizontal distance from the vertex to where one Newton step from its foot onto the run's
         plane lands (the curve's nearest point to first order; inf where the face is horizontal at
-        the foot, NaN where the foot was not found: Gauss-Newton stuck or not converged); else None
-        for both."""
+        the foot, NaN where the foot was not found: Gauss-Newton stuck or not converged, as at
+        bug27453_165-174_piattello's z = 14.1, where points put 0.33 mm off from such feet made the
+        ring cross itself); else None for both."""
         k = len(runs)
         out = np.full((k, 2), np.nan)
         if not k:
@@ -695,13 +697,19 @@ class RunRefiner:
         return out, np.column_stack([u, v]), np.where(found, off, np.nan)
 
     def _gap_end_points(
-        self, runs: list[_Run], run: np.ndarray, end: np.ndarray, uv: np.ndarray, off: np.ndarray
+        self,
+        runs: list[_Run],
+        run: np.ndarray,
+        end: np.ndarray,
+        uv: np.ndarray,
+        off: np.ndarray,
+        reach: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The section curve's point nearest each run end vertex that lies off its face's curve
         (``off``: its estimated distance, ``uv``: its foot on the face), by Newton onto the run's
         plane from the foot: (k, 3) points, (k,) mask of those found, (k, 2) their (u, v). Found:
-        converged within 2 ``off`` + the chord of the vertex (the curve's point near it, not another
-        branch's), and inside the face's trim (the face's curve may run on the surface's extension
+        converged within 2 ``off`` + the chord of the vertex and within ``reach`` (half its end
+        segment: a point farther along would not come next to the vertex), and inside the face's trim (the face's curve may run on the surface's extension
         past the edge instead: bug24595_281390 turned (-119.7, -47.5, -168.3) at z = 43.5, a corner
         0.033 mm from face 0's curve, which there lies 0.030 mm beyond the face; no point is added)."""
         face = np.array([runs[r].face for r in run.tolist()])
@@ -712,7 +720,7 @@ class RunRefiner:
             [runs[r].end if w else runs[r].start for r, w in zip(run.tolist(), end.tolist(), strict=True)]
         )
         dist = np.linalg.norm(np.nan_to_num(xyz[:, :2]) - self.pool.xyz[vid, :2], axis=1)
-        ok &= dist <= 2.0 * np.where(np.isfinite(off), off, 0.0) + self.chord
+        ok &= (dist <= 2.0 * np.where(np.isfinite(off), off, 0.0) + self.chord) & (dist <= reach)
         for i in np.flatnonzero(ok).tolist():
             ok[i] = self.mesh.faces[face[i]].contains(
                 float(out_uv[i, 0]), float(out_uv[i, 1]), tol=TRIM_TOL_MM
