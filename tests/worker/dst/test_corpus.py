@@ -284,6 +284,15 @@ def _check_every_plane(mesh, path: Path, key: str | None = None) -> None:
     pytest.xfail(f"{known} ({len(bad)} planes, e.g. {bad[0]})")
 
 
+def _turned(name: str, turn: tuple[float, float, float]) -> tuple[Path, SliceParams]:
+    """The corpus file ``name`` (under the corpus folder) and its test parameters turned by
+    ``turn``; the test is skipped where the corpus is not beside this checkout."""
+    path = CORPUS / name
+    if not path.is_file():
+        pytest.skip(f"the shared STEP corpus is not beside this checkout ({CORPUS})")
+    return path, _params(path).model_copy(update=dict(zip(ROTATION_FIELDS, turn, strict=True)))
+
+
 @pytest.mark.slow
 def test_a_tongue_beyond_a_pinned_loops_crossings_is_sampled_round_its_tip():
     """r103ec turned to (35.3, -158.7, -40.5): at z = 52.5 and 54.3 the plane grazes a tilted crest
@@ -297,10 +306,7 @@ def test_a_tongue_beyond_a_pinned_loops_crossings_is_sampled_round_its_tip():
     reported as gaps of the B-rep. Now the root is kept (it lies on the curve between its
     neighbours) and the segment is traced whole round the tip: both planes within budget, no
     crossing, no gap."""
-    path = CORPUS / "mechanical" / "r103ec.stp"
-    if not path.is_file():
-        pytest.skip(f"the shared STEP corpus is not beside this checkout ({CORPUS})")
-    params = _params(path).model_copy(update=dict(zip(ROTATION_FIELDS, (35.3, -158.7, -40.5), strict=True)))
+    path, params = _turned("mechanical/r103ec.stp", (35.3, -158.7, -40.5))
     mesh = slice_step(path, params)
     assert mesh.stats["excursions"] > 0
     assert mesh.stats["tolerance_gaps"] == 0, mesh.stats["max_gap_at"]
@@ -325,10 +331,7 @@ def test_a_periodic_faces_lowest_point_search_stays_on_a_period_occt_evaluates(t
     ("cannot convert float NaN to integer"): both jobs failed. The search is evaluated on the period
     nearest its start and bounded to a period either side of it; the part is sliced, and its height
     is the exact one (OCCT's distances from planes above and below it)."""
-    path = CORPUS / "freeform" / "bug24595_281390.stp"
-    if not path.is_file():
-        pytest.skip(f"the shared STEP corpus is not beside this checkout ({CORPUS})")
-    params = _params(path).model_copy(update=dict(zip(ROTATION_FIELDS, turn, strict=True)))
+    path, params = _turned("freeform/bug24595_281390.stp", turn)
     mesh = slice_step(path, params)
     assert_watertight(mesh)
     assert_slab_property(mesh)
@@ -441,10 +444,7 @@ def test_report_reference_follows_the_curve_where_its_crossings_come_out_of_orde
     (OCCT's section: 0.024) and told of parts of the section its reference missed. Those planes now
     measure within the budget and the reference's resolution, with no such warning (the part's other
     planes: test_corpus_file_turned)."""
-    path = CORPUS / "assembly" / "boxed_sphere.step"
-    if not path.is_file():
-        pytest.skip(f"the shared STEP corpus is not beside this checkout ({CORPUS})")
-    params = _params(path).model_copy(update=dict(zip(ROTATION_FIELDS, (4.3, 162.2, -128.1), strict=True)))
+    path, params = _turned("assembly/boxed_sphere.step", (4.3, 162.2, -128.1))
     mesh = slice_step(path, params)
     report = build_report(mesh.part, params, file_name=path.name, dst=mesh, baselines=())
     (dst,) = report.meshes
@@ -482,10 +482,7 @@ def test_off_centre_bends_are_within_budget_and_a_loose_files_offsets_are_put_do
     within the budget of the ring (float32 slack only). And at five planes the ring's vertices lie
     on a face 2-6 um from the reference, within that face's 0.059 mm edge tolerance: the report
     says the file is exact only to its tolerances there, and names no gap of its reference."""
-    path = CORPUS / "assembly" / "boxed_sphere.step"
-    if not path.is_file():
-        pytest.skip(f"the shared STEP corpus is not beside this checkout ({CORPUS})")
-    params = _params(path).model_copy(update=dict(zip(ROTATION_FIELDS, (16.7, -95.9, 65.9), strict=True)))
+    path, params = _turned("assembly/boxed_sphere.step", (16.7, -95.9, 65.9))
     mesh = slice_step(path, params)
     d, plane, _ = _exact_points_from_ring(mesh, mesh.planes.section_z)
     worst = int(np.argmax(d))
@@ -506,10 +503,7 @@ def test_a_bend_next_to_a_corner_that_the_end_segments_midpoint_hides_is_split()
     more steeply than an arc within the budget leaves its chord is checked at its quarter points and
     split (``stats['end_bend_checks']``): every exact point of the report's reference is within the
     budget of the ring."""
-    path = CORPUS / "assembly" / "boxed_sphere.step"
-    if not path.is_file():
-        pytest.skip(f"the shared STEP corpus is not beside this checkout ({CORPUS})")
-    params = _params(path).model_copy(update=dict(zip(ROTATION_FIELDS, (36.3, -159.6, 99.5), strict=True)))
+    path, params = _turned("assembly/boxed_sphere.step", (36.3, -159.6, 99.5))
     mesh = slice_step(path, params)
     assert mesh.stats["end_bend_checks"] > 0
     d, plane, pts = _exact_points_from_ring(mesh, mesh.planes.section_z)
@@ -525,10 +519,7 @@ def test_a_corner_off_its_faces_curve_is_joined_to_the_curve_where_it_comes_near
     midpoint and quarter checks while the curve lay 0.0348 mm from it (budget 0.025). The curve's
     point nearest such a corner is added next to it (``stats['gap_ends']``): every exact point of
     the plane's section is within the budget of the ring."""
-    path = CORPUS / "freeform" / "bug24595_281390.stp"
-    if not path.is_file():
-        pytest.skip(f"the shared STEP corpus is not beside this checkout ({CORPUS})")
-    params = _params(path).model_copy(update=dict(zip(ROTATION_FIELDS, (157.5, -47.8, -129.9), strict=True)))
+    path, params = _turned("freeform/bug24595_281390.stp", (157.5, -47.8, -129.9))
     mesh = slice_step(path, params)
     assert mesh.stats["gap_ends"] > 0
     (j,) = np.flatnonzero(np.isclose(mesh.planes.z, 95.7))
@@ -544,12 +535,7 @@ def test_a_segment_round_a_deep_bend_is_split_whatever_its_samples_say():
     the 0.025 budget. A segment whose sampled distance exceeds 0.15 of its length turns through more
     than ~67 degrees and is split (``stats['deep_bends']``): every exact point of the plane's section
     is within the budget of the ring."""
-    path = CORPUS / "freeform" / "Ventilator.stp"
-    if not path.is_file():
-        pytest.skip(f"the shared STEP corpus is not beside this checkout ({CORPUS})")
-    params = _params(path).model_copy(
-        update=dict(zip(ROTATION_FIELDS, (-135.2, -164.2, -177.2), strict=True))
-    )
+    path, params = _turned("freeform/Ventilator.stp", (-135.2, -164.2, -177.2))
     mesh = slice_step(path, params)
     assert mesh.stats["deep_bends"] > 0
     d, _, pts = _exact_points_from_ring(mesh, mesh.planes.section_z[:1])
@@ -564,10 +550,7 @@ def test_a_segment_whose_quarter_point_is_lost_round_a_tight_bend_is_estimated_f
     larger sample passed, while the curve lay 0.0253 mm from the segment near its middle (budget
     0.025). The two samples now give the peak of t (1 - t) g(t) (``_zero_end_peak``): every exact
     point of the plane's section is within the budget of the ring."""
-    path = CORPUS / "freeform" / "Ventilator.stp"
-    if not path.is_file():
-        pytest.skip(f"the shared STEP corpus is not beside this checkout ({CORPUS})")
-    params = _params(path).model_copy(update=dict(zip(ROTATION_FIELDS, (105.4, 22.5, -109.3), strict=True)))
+    path, params = _turned("freeform/Ventilator.stp", (105.4, 22.5, -109.3))
     mesh = slice_step(path, params)
     (j,) = np.flatnonzero(np.isclose(mesh.planes.z, 78.9))
     d, _, pts = _exact_points_from_ring(mesh, mesh.planes.section_z[j : j + 1])
@@ -584,10 +567,7 @@ def test_report_reference_keeps_a_tongue_tip_its_trace_between_suspects_would_lo
     for DST (12.65 mm of reference for 10.8 of curve at z = 0.3). The run round such a piece is now
     traced from corner to corner: the reference is a little longer than the curve's 25 um polyline
     (inscribed in it) and no longer than the chord budget allows, and the DST perimeters match."""
-    path = CORPUS / "assembly" / "boxed_sphere.step"
-    if not path.is_file():
-        pytest.skip(f"the shared STEP corpus is not beside this checkout ({CORPUS})")
-    params = _params(path).model_copy(update=dict(zip(ROTATION_FIELDS, (-11.5, -70.9, -79.8), strict=True)))
+    path, params = _turned("assembly/boxed_sphere.step", (-11.5, -70.9, -79.8))
     mesh = slice_step(path, params)
     report = build_report(mesh.part, params, file_name=path.name, dst=mesh, baselines=())
     (dst,) = report.meshes
@@ -619,10 +599,7 @@ def test_a_section_that_nearly_pinches_itself_has_both_its_loops_in_the_referenc
     loops, and the ring measures within budget with no such pocket and no warning about the
     reference. (Still there: seven ring vertices up to 0.018 mm off the B-rep, on a face's surface
     past its trim, in a strip where the contour turns over, which the report names.)"""
-    path = CORPUS / "freeform" / "bug24595_281390.stp"
-    if not path.is_file():
-        pytest.skip(f"the shared STEP corpus is not beside this checkout ({CORPUS})")
-    params = _params(path).model_copy(update=dict(zip(ROTATION_FIELDS, (150.2, 46.5, 5.1), strict=True)))
+    path, params = _turned("freeform/bug24595_281390.stp", (150.2, 46.5, 5.1))
     mesh = slice_step(path, params)
     report = build_report(mesh.part, params, file_name=path.name, dst=mesh, baselines=())
     (layer,) = [layer for layer in report.meshes[0].layers if abs(layer.z - 87.5) < 1e-6]
@@ -671,10 +648,7 @@ def test_a_small_cap_whose_crossing_was_walked_past_its_neighbour_is_right_witho
     curve. The fold came from a crossing walked along the curve past its neighbour; with that walk
     refused (``RingSampler._reordered``) the pinned ring is in order: no fan, within budget, no
     crossing. Without the neighbour rule the cap is fanned again: the case still has the fold."""
-    path = CORPUS / "mechanical" / "r103ec.stp"
-    if not path.is_file():
-        pytest.skip(f"the shared STEP corpus is not beside this checkout ({CORPUS})")
-    params = _params(path).model_copy(update=dict(zip(ROTATION_FIELDS, (-55.5, -11.2, 146.2), strict=True)))
+    path, params = _turned("mechanical/r103ec.stp", (-55.5, -11.2, 146.2))
     with monkeypatch.context() as m:
         m.setattr(RingSampler, "_neighbour_points", lambda self, c: (None, None))
         assert slice_step(path, params).stats["fanned_caps"] >= 1
