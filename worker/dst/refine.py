@@ -654,13 +654,14 @@ class RunRefiner:
         u, v = uv[:, 0].copy(), uv[:, 1].copy()
         normal = np.full((k, 3), np.nan)
         gap = np.full(k, np.inf)
+        foot = np.full((k, 3), np.nan)  # the surface point at the last (u, v) evaluated
         act = np.arange(k)
         found = np.ones(k, dtype=bool)  # the foot converged (the nearest point of the surface)
         for _ in range(END_TANGENT_ITER):
             res = self._d1(face[act], u[act], v[act], self._ads, p, du, dv)
             r = res[:, :3] - target[act]
             su, sv = res[:, 3:6], res[:, 6:9]
-            normal[act], gap[act] = np.cross(su, sv), np.linalg.norm(r, axis=1)
+            normal[act], gap[act], foot[act] = np.cross(su, sv), np.linalg.norm(r, axis=1), res[:, :3]
             a11, a12, a22 = (su * su).sum(1), (su * sv).sum(1), (sv * sv).sum(1)
             b1, b2 = (su * r).sum(1), (sv * r).sum(1)
             det = a11 * a22 - a12 * a12
@@ -684,15 +685,14 @@ class RunRefiner:
         out[ok] = np.column_stack([normal[ok, 1], -normal[ok, 0]]) / flat[ok, None]
         if not offsets:
             return out, None, None
-        # the Newton step from the foot onto the plane: horizontally f n_z n_h / |n_h|^2 (unit normal)
-        res = self._d1(face, u, v, self._ads, p, du, dv)
-        n = np.cross(res[:, 3:6], res[:, 6:9])
-        n /= np.maximum(np.linalg.norm(n, axis=1), 1e-300)[:, None]
+        # the Newton step from the foot onto the plane: horizontally f n_z n_h / |n_h|^2 (unit normal;
+        # a found foot's last step moved it under a nanometre: its last evaluation serves)
+        n = normal / np.maximum(size, 1e-300)[:, None]
         h2 = n[:, 0] ** 2 + n[:, 1] ** 2
         zc = np.array([r.zc for r in runs])
         with np.errstate(divide="ignore", invalid="ignore"):
-            step_xy = ((res[:, 2] - zc) * n[:, 2] / h2)[:, None] * n[:, :2]
-            off = np.linalg.norm(res[:, :2] + step_xy - target[:, :2], axis=1)
+            step_xy = ((foot[:, 2] - zc) * n[:, 2] / h2)[:, None] * n[:, :2]
+            off = np.linalg.norm(foot[:, :2] + step_xy - target[:, :2], axis=1)
         off = np.where(np.isfinite(off), off, np.inf)
         return out, np.column_stack([u, v]), np.where(found, off, np.nan)
 
@@ -709,9 +709,10 @@ class RunRefiner:
         (``off``: its estimated distance, ``uv``: its foot on the face), by Newton onto the run's
         plane from the foot: (k, 3) points, (k,) mask of those found, (k, 2) their (u, v). Found:
         converged within 2 ``off`` + the chord of the vertex and within ``reach`` (half its end
-        segment: a point farther along would not come next to the vertex), and inside the face's trim (the face's curve may run on the surface's extension
-        past the edge instead: bug24595_281390 turned (-119.7, -47.5, -168.3) at z = 43.5, a corner
-        0.033 mm from face 0's curve, which there lies 0.030 mm beyond the face; no point is added)."""
+        segment: a point farther along would not come next to the vertex), and inside the face's
+        trim (the face's curve may run on the surface's extension past the edge instead:
+        bug24595_281390 turned (-119.7, -47.5, -168.3) at z = 43.5, a corner 0.033 mm from face 0's
+        curve, which there lies 0.030 mm beyond the face; no point is added)."""
         face = np.array([runs[r].face for r in run.tolist()])
         zc = np.array([runs[r].zc for r in run.tolist()])
         step = np.array([runs[r].max_step for r in run.tolist()])
