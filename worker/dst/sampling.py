@@ -128,6 +128,7 @@ class SamplingStats:
     gap_ends: int = 0  # points added next to run ends off their face's curve (GAP_END_REL)
     unchecked_segments: int = 0  # segments whose midpoint could not be placed (see _midpoints_off_the_path)
     off_trim_crossings: int = 0  # crossings whose root lay beyond their face's trim (see _drop_off_trim)
+    merged_crossings: int = 0  # crossings at the same point as their loop neighbour (_merge_coincident)
     max_gap_mm: float = 0.0
     max_gap_at: str = ""
 
@@ -962,6 +963,7 @@ class RingSampler(RunRefiner):
         nxt_pos = np.array([pos[int(c)] for c in topo.succ[cross].tolist()], dtype=np.int64)
         if self.off_trim:
             self._drop_off_trim(cl, vids, nxt_pos)
+        self._merge_coincident(cl, vids, nxt_pos)
         self.corner_vids.update(v for v, k in zip(vids, corner.tolist(), strict=True) if k)
         exact = self.pool.xyz[vids]
         seg_d = np.linalg.norm(exact[nxt_pos] - exact, axis=1).tolist()
@@ -974,7 +976,7 @@ class RingSampler(RunRefiner):
             if c in self.subdiv:
                 continue
             k = int(nxt_pos[i])
-            if vids[i] == vids[k] and (c in self.off_trim or cl[k] in self.off_trim):  # _drop_off_trim
+            if vids[i] == vids[k]:  # _drop_off_trim or _merge_coincident: no segment left
                 self.subdiv[c] = []
                 continue
             nxt = cl[k]
@@ -1203,6 +1205,39 @@ class RingSampler(RunRefiner):
             keep = a if np.linalg.norm(xyz[a] - near) <= np.linalg.norm(xyz[b] - near) else b
             self.cross_vid[cl[i]] = vids[i] = keep
             self.stats.off_trim_crossings += 1
+
+    def _merge_coincident(self, cl: list[int], vids: list[int], nxt_pos: np.ndarray) -> None:
+        """Give (in place, and for every triangle that uses it) each crossing of this loop whose
+        exact point lies within 1 nm of the next one's (``_close``) the vertex of that one: the ring
+        drops such a repeat (``_dedupe_cyclic``), so the kept triangles must not keep it either. A
+        run of repeats takes its node's vertex if it has one (a run with two nodes is left apart),
+        else its first crossing's. (bug29241 turned (-71.7, 8.5, -112.9) at z = 372.3: the section
+        1e-10 mm from where two topology edges of one triangle cross the plane, the ring with one of
+        the two points and the triangles on both sides with both: three open edges.)"""
+        xyz = self.pool.xyz[vids]
+        near = np.abs(xyz[nxt_pos] - xyz).max(axis=1) < 1e-9
+        if not near.any() or near.all():
+            return
+        cross_node = self.topo.cross_node
+        # runs of repeats in the loop's order, each from the vertex before its first repeat
+        i = int(np.flatnonzero(~near)[0])  # (a loop all within 1 nm is no ring: left as it is)
+        runs: list[list[int]] = []
+        for _ in range(len(cl)):
+            k = int(nxt_pos[i])
+            if near[i]:
+                if not runs or runs[-1][-1] != i:
+                    runs.append([i])
+                runs[-1].append(k)
+            i = k
+        for run in runs:
+            nodes = {vids[m] for m in run if cross_node[cl[m]] >= 0}
+            if len(nodes) > 1:
+                continue
+            keep = nodes.pop() if nodes else vids[run[0]]
+            for m in run:
+                if vids[m] != keep and cross_node[cl[m]] < 0:
+                    self.cross_vid[cl[m]] = vids[m] = keep
+                    self.stats.merged_crossings += 1
 
     def pinned_segment(self, c: int) -> list[int]:
         """Inner vertices of the pinned segment starting at crossing ``c`` (after ``pinned_loop``)."""

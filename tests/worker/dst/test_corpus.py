@@ -664,6 +664,23 @@ def test_a_small_cap_whose_crossing_was_walked_past_its_neighbour_is_right_witho
     assert not [w for w in report.warnings if "crosses itself" in w], report.warnings
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("turn", [(-71.7, 8.5, -112.9), (52.3, 4.7, 130.6)])
+def test_crossings_at_one_point_are_one_vertex_of_the_ring_and_of_the_triangles_beside_it(turn):
+    """bug29241 turned (-71.7, 8.5, -112.9) at z = 372.3 (and (52.3, 4.7, 130.6) at 293.5 and 293.9):
+    the section passes 1e-10 mm from where two topology edges of one triangle cross the plane. The
+    ring dropped one of the two points as a repeat, the kept triangles on both sides used both, and
+    the build failed its own mesh check (3 and 6 open edges). Such crossings now share one vertex
+    (``RingSampler._merge_coincident``). Coarse segments (the crossings, and so the case, are those
+    of the default settings) keep the build at ~25 s."""
+    path, params = _turned("mechanical/bug29241.stp", turn)
+    params = params.model_copy(update={"segment_length": 5.0, "chord_error": 0.1})
+    mesh = slice_step(path, params)  # raises TessellationError where the mesh check fails
+    assert mesh.stats["merged_crossings"] >= 1
+    assert_watertight(mesh)
+    assert_slab_property(mesh)
+
+
 def test_a_face_occt_cannot_mesh_is_closed_and_reported():
     """trj10's face 73 is a planar sliver of 1.3e-9 mm^2 that BRepMesh leaves unmeshed, and a corner
     beside it has node copies 6e-7 mm apart (beyond the merge tolerance, within the file's vertex
