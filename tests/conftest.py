@@ -14,7 +14,7 @@ CORPUS = Path(__file__).resolve().parents[1].parent / "shared" / "corpus"
 def build_part(kind: str, **kw):
     """An analytic part as a build123d shape (mm). Kinds: hemisphere, torus, cone, tube, step_box,
     tangent_features, dome_below_top, tilted_boss, through_hole, lying_cylinder, half_torus,
-    filleted_ridge."""
+    filleted_ridge, lens."""
     import build123d as bd
 
     if kind == "hemisphere":
@@ -28,6 +28,12 @@ def build_part(kind: str, **kw):
         block = bd.Box(40.0, 10.0, 10.0)
         edge = block.edges().filter_by(bd.Axis.X).filter_by(lambda e: e.center().Y > 0).sort_by(bd.Axis.Z)[-1]
         return bd.fillet(edge, kw.get("radius", 0.3))
+    if kind == "lens":
+        # A prism whose section is a lens: the overlap of two vertical cylinders of ``radius`` whose
+        # axes are ``radius`` - ``sag`` either side of the y = 0 line (each arc sags ``sag`` from the
+        # lens's chord along x), ``height`` tall.
+        r, sag, h = kw.get("radius", 11.45), kw.get("sag", 0.4), kw.get("height", 2.0)
+        return bd.Pos(0, r - sag, 0) * bd.Cylinder(r, h) & bd.Pos(0, sag - r, 0) * bd.Cylinder(r, h)
     if kind == "torus":
         return bd.Torus(kw.get("major", 15.0), kw.get("minor", 5.0))
     if kind == "cone":

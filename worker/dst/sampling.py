@@ -646,14 +646,17 @@ class RingSampler(RunRefiner):
         scale = np.concatenate([self.tri_uv_scale[seg_tri]] * 2)
         gap = np.linalg.norm(exact - topo_xyz[starts], axis=1)
         far = gap > SUSPECT_DEFLECTIONS * self.mesh.deflection
-        single = len(starts) == 1
+        # at least ``min_seg`` segments in all: a loop of two corners whose two arcs each sag within
+        # the chord budget would otherwise be two points (bug29241 turned (52.3, 4.7, 130.6) at 10 mm
+        # segments and a 0.5 mm chord: a 4.4 mm lens between two faces)
+        least = -(-min_seg // len(starts))
         runs = []
         for r, i0 in enumerate(starts):
             r1 = (r + 1) % len(starts)
             count = (starts[r1] - i0) % n or n
             s = cum[i0 : i0 + count + 1] - cum[i0]
             uv = np.concatenate([uv_start[i0 : i0 + count], uv_end[i0 + count - 1 : i0 + count]])
-            n_seg = max(min_seg if single else 1, math.ceil(s[-1] / (self.seg_len * SEGMENT_FILL)))
+            n_seg = max(least, math.ceil(s[-1] / (self.seg_len * SEGMENT_FILL)))
             step = 2.0 * float(scale[i0 : i0 + count].max())
             moved = tuple((exact[k].copy(), float(gap[k]) + self.seg_len) for k in (r, r1) if far[k])
             if moved:

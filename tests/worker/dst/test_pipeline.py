@@ -124,6 +124,35 @@ def test_cone_rings_follow_the_linear_radius(make_step):
     np.testing.assert_array_less(np.abs(np.hypot(v[:, 0], v[:, 1]) - 10.0 * (1 - zs / 20.0)), EXACT_TOL)
 
 
+def test_a_lens_whose_arcs_each_sag_within_the_chord_budget_keeps_both_arcs(make_step):
+    """A prism whose section is a lens between two cylinders (R 11.45, each arc sagging 0.4 mm from
+    the 6 mm chord between the lens's two corners), at 10 mm segments and a 0.5 mm chord: each arc
+    alone is within budget as one segment, which made every ring the two corners ("collapses to
+    fewer than 3 points"; bug29241 turned (52.3, 4.7, 130.6) had such a loop). Every ring now has a
+    point on each arc, exact, and each segment is within the chord budget of its arc."""
+    r, sag = 11.45, 0.4
+    mesh = slice_step(
+        make_step("lens", radius=r, sag=sag, height=2.0),
+        SliceParams(layer_height=0.2, segment_length=10.0, chord_error=0.5),
+    )
+    assert_watertight(mesh)
+    assert_slab_property(mesh)
+    v, _ = _ring_xyz(mesh)
+    d_up = np.hypot(v[:, 0], v[:, 1] - (r - sag))  # from the axis of the cylinder above y = 0
+    d_down = np.hypot(v[:, 0], v[:, 1] + (r - sag))
+    on = np.minimum(np.abs(d_up - r), np.abs(d_down - r))
+    np.testing.assert_array_less(on, EXACT_TOL)
+    np.testing.assert_array_less(np.maximum(d_up, d_down), r + EXACT_TOL)  # inside both
+    vp = mesh.vertex_plane[mesh.vertex_plane >= 0]
+    for j in range(len(mesh.planes)):
+        y = v[vp == j, 1]
+        assert (y > 0.5 * sag).any() and (y < -0.5 * sag).any(), (j, y)
+    edges, _ = ring_edges(mesh)
+    a, b = mesh.vertices[edges[:, 0]], mesh.vertices[edges[:, 1]]
+    length = np.linalg.norm(a - b, axis=1)
+    assert max(circle_sag(r, ln) for ln in length) <= 0.5
+
+
 def test_torus_lying_flat_has_two_exact_circles_per_plane(make_step):
     mesh = slice_step(
         make_step("torus", major=15.0, minor=5.0), SliceParams(layer_height=0.2, chord_error=0.01)
