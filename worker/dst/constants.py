@@ -6,6 +6,10 @@ SEGMENT_LENGTH_RANGE_MM = (0.01, 50.0)  # below 10 um the STL is larger than any
 CHORD_ERROR_RANGE_MM = (0.0001, 1.0)  # 0.1 um is far below float32 resolution on a 100 mm part
 MAX_PLANES = 20_000  # 4 m of 0.2 mm layers; beyond that the job is certainly a unit mistake
 MAX_TRIANGLES = 20_000_000  # a 1 GB binary STL; no slicer loads more in reasonable time
+# (triangle, plane) pairs a topology mesh's cut may hold: the cut takes ~400 bytes a pair at its peak
+# (bug29241 turned: 1.4 million pairs, 0.57 GB), so 10 million is ~4 GB; 11752 turned (37, -61, 113)
+# at 0.3 mm layers has 45 million (3865 planes across 158k triangles) and took 24 GB before it was killed
+MAX_SECTION_PAIRS = 10_000_000
 
 # --- exactness -------------------------------------------------------------------------------------
 LEVEL_TOL_MM = 1e-10  # a ring vertex's |z - plane| after Newton: far below float32 (1e-6 at 10 mm)

@@ -23,7 +23,8 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from worker.dst.errors import TessellationError
+from worker.dst import constants as C
+from worker.dst.errors import ResourceLimitExceeded, TessellationError
 from worker.dst.topomesh import TopoMesh
 
 NOISE_MM = 1e-9  # a node this close to a plane is on it at least: numerical noise of the evaluators
@@ -92,6 +93,15 @@ class SectionTopology:
         return int(self.piece_off[tri] + slab - self.tri_smin[tri])
 
 
+def section_pairs(mesh: TopoMesh, planes: np.ndarray) -> int:
+    """How many (triangle, plane) pairs ``cut_topology`` cuts, within the few a node on a plane adds
+    or takes away: each triangle's planes from its z range, ahead of the cut's memory."""
+    tz = mesh.xyz[mesh.tris, 2]
+    lo = np.searchsorted(planes, tz.min(axis=1), side="left")
+    hi = np.searchsorted(planes, tz.max(axis=1), side="right")
+    return int((hi - lo).sum())
+
+
 def cut_topology(
     mesh: TopoMesh, planes: np.ndarray, *, on_plane_tol: float, noise_tol: np.ndarray | None = None
 ) -> SectionTopology:
@@ -100,6 +110,13 @@ def cut_topology(
     ``noise_tol`` (per plane, mm): a node this close to a plane is on it whatever the geometry; pass the
     float32 resolution of the written heights, at which the STL puts such a node on the plane anyway.
     """
+    pairs = section_pairs(mesh, planes)
+    if pairs > C.MAX_SECTION_PAIRS:
+        raise ResourceLimitExceeded(
+            f"the part's {len(planes)} planes would cross its topology mesh's triangles about "
+            f"{pairs / 1e6:.0f} million times (limit {C.MAX_SECTION_PAIRS / 1e6:.0f} million; the cut takes "
+            "~400 bytes each): check the file's units, or use thicker layers"
+        )
     tris = mesh.tris
     m = len(tris)
     n = len(mesh.xyz)

@@ -321,6 +321,37 @@ def test_jobs_beyond_the_triangle_limit_are_refused_before_sampling(make_step, m
         slice_step(make_step("cone", radius=10.0, height=10.0), SliceParams())
 
 
+def test_a_cut_too_large_for_memory_is_refused_before_it_is_made(make_step, monkeypatch):
+    """The topology mesh's cut takes ~400 bytes per (triangle, plane) pair: a tall, finely meshed part
+    (11752 turned (37, -61, 113) at 0.3 mm layers: 45 million pairs) grew to 24 GB before the
+    triangle limit, counted after the cut, could refuse it. The pairs are counted from the
+    triangles' z ranges first: the count is within 2% of the cut's own segments, and a count over
+    the limit is refused before anything is cut."""
+    from worker.dst import constants, sections
+    from worker.dst.errors import ResourceLimitExceeded
+
+    cuts = []
+    cut = sections.cut_topology
+
+    def counting_cut(mesh, planes, **kw):
+        topo = cut(mesh, planes, **kw)
+        cuts.append((sections.section_pairs(mesh, planes), len(topo.succ)))
+        return topo
+
+    path = make_step("cone", radius=10.0, height=10.0)
+    monkeypatch.setattr("worker.dst.pipeline.cut_topology", counting_cut)
+    slice_step(path, SliceParams())
+    ((pairs, segments),) = cuts
+    assert segments > 1000
+    # within the pairs where a node on a plane only touches it (the cone's 12,994 segments: 13,181)
+    assert abs(pairs - segments) <= 0.02 * segments, (pairs, segments)
+
+    monkeypatch.setattr(constants, "MAX_SECTION_PAIRS", pairs - 1)
+    monkeypatch.setattr(sections, "_plane_of", lambda *a: pytest.fail("the cut was started"))
+    with pytest.raises(ResourceLimitExceeded, match="thicker layers"):
+        slice_step(path, SliceParams())
+
+
 @pytest.mark.parametrize("nurbs", [False, True])
 def test_planes_tangent_to_the_surface_give_a_closed_mesh(make_step, nurbs):
     mesh = slice_step(make_step("tangent_features", nurbs=nurbs), SliceParams(layer_height=0.2))
