@@ -24,6 +24,9 @@ TOPO_DEFLECTION_REL = 2e-4  # of the bounding-box diagonal
 TOPO_DEFLECTION_MAX_MM = 0.02
 TOPO_DEFLECTION_MIN_MM = 0.001
 TOPO_ANGULAR_RAD = 0.35  # ~20 deg: keeps curved faces resolved where the linear bound is loose
+# a solid whose BRepMesh mesh fails (a face unmeshed, the mesh not closed) is meshed again this much
+# finer, in turn, until one holds (BRepMesh's failures can come and go with the deflection alone)
+TOPO_RETRY_FINER = (0.7, 0.5)
 MERGE_TOL_REL = 1e-9  # of the bbox diagonal: nodes of different faces closer than this are one node
 
 # --- sampling --------------------------------------------------------------------------------------

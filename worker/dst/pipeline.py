@@ -25,7 +25,7 @@ from worker.dst.sections import cut_topology
 from worker.dst.step_io import LoadedPart, heal_wires, orient, read_step
 from worker.dst.stl_io import write_3mf, write_stl
 from worker.dst.tessellate import tessellate_solid
-from worker.dst.topomesh import build_topomesh
+from worker.dst.topomesh import TopoMesh, build_topomesh
 
 Progress = Callable[[str, float], None]
 
@@ -98,7 +98,7 @@ def slice_part(
     for si, solid in enumerate(part.solids):
         report(f"meshing solid {si + 1}/{len(part.solids)}", 0.1 * si / len(part.solids))
         try:
-            mesh = topomesh(solid)
+            mesh = _topomesh_or_finer(topomesh, solid, deflection)
         except UnmeshedFaceError as exc:
             # A face OCCT cannot mesh often has gaps or zero-length edges in its boundary: repaired
             # within the mesh's own deflection, the same solid is meshed again (and is the one the
@@ -108,7 +108,7 @@ def slice_part(
                 raise
             solid, change = healed
             try:
-                mesh = topomesh(solid)
+                mesh = _topomesh_or_finer(topomesh, solid, deflection)
             except TessellationError:
                 raise exc from None
             part.solids[si] = solid
@@ -252,6 +252,24 @@ def slice_part(
         warnings=warnings,
         stats=stats,
     )
+
+
+def _topomesh_or_finer(topomesh: Callable[..., TopoMesh], solid, deflection: float) -> TopoMesh:
+    """``topomesh(solid)``, or where BRepMesh's mesh fails (a face left unmeshed, or the mesh not
+    closed), the first mesh that does not at ``TOPO_RETRY_FINER`` times the deflection (else the
+    first error). BRepMesh's failures can depend on the deflection alone: bug32596_abc_0_13 turned
+    (-96.6, 92.7, -126.9) has its face 5 (a narrow B-spline strip) unmeshed at 0.01395-0.01397 mm
+    and meshed at 0.01398; from 0.5 to 1.45 times that deflection in steps of 0.05, 6 of 20 meshes
+    fail (0.55, 0.8, 1.0, 1.2, 1.25, 1.35). A finer topology mesh only costs time."""
+    try:
+        return topomesh(solid)
+    except TessellationError as exc:
+        for factor in C.TOPO_RETRY_FINER:
+            try:
+                return topomesh(solid, deflection=factor * deflection)
+            except TessellationError:
+                continue  # the next factor
+        raise exc from None
 
 
 def simplification_warnings(params: SliceParams) -> list[str]:

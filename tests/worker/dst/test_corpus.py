@@ -681,6 +681,41 @@ def test_crossings_at_one_point_are_one_vertex_of_the_ring_and_of_the_triangles_
     assert_slab_property(mesh)
 
 
+@pytest.mark.parametrize(
+    ("scale", "failure"), [(1.0, "face 5 could not be meshed"), (1.2, "surface mesh is not closed")]
+)
+def test_a_solid_brepmesh_fails_on_at_one_deflection_is_meshed_finer(monkeypatch, scale, failure):
+    """bug32596_abc_0_13 turned (-96.6, 92.7, -126.9): at the build's topology deflection (0.01397
+    mm) BRepMesh gives face 5 no triangles (at 0.01398 it meshes it), and the build failed; at 1.2
+    times it (another part's size) its mesh is not closed. The solid is meshed again finer
+    (``TOPO_RETRY_FINER``) before anything else: the mesh is closed, sliced and exact."""
+    from worker.dst import constants as C
+    from worker.dst import pipeline
+    from worker.dst.errors import TessellationError
+    from worker.dst.step_io import orient, read_step
+    from worker.dst.topomesh import build_topomesh
+
+    path, params = _turned("mechanical/bug32596_abc_0_13.step", (-96.6, 92.7, -126.9))
+    part = orient(read_step(path), params.rotation)
+    diag, _ = pipeline.bbox_diagonal(part)
+    deflection = scale * pipeline.topo_deflection(diag)
+    with pytest.raises(TessellationError, match=failure):  # the case: OCCT 8.0.1's mesher there
+        build_topomesh(
+            part.solids[0],
+            deflection=deflection,
+            angular=C.TOPO_ANGULAR_RAD,
+            merge_tol=C.MERGE_TOL_REL * diag,
+        )
+    topo_deflection = pipeline.topo_deflection
+    monkeypatch.setattr(pipeline, "topo_deflection", lambda d: scale * topo_deflection(d))
+    mesh = slice_step(path, params)
+    assert_watertight(mesh)
+    assert_slab_property(mesh)
+    assert not [w for w in mesh.warnings if "repaired" in w], mesh.warnings
+    _check_against_exact_sections(mesh)
+    _check_every_plane(mesh, path, f"{path.name} turned {params.rotation}")
+
+
 def test_a_face_occt_cannot_mesh_is_closed_and_reported():
     """trj10's face 73 is a planar sliver of 1.3e-9 mm^2 that BRepMesh leaves unmeshed, and a corner
     beside it has node copies 6e-7 mm apart (beyond the merge tolerance, within the file's vertex
