@@ -28,6 +28,7 @@ TOPO_ANGULAR_RAD = 0.35  # ~20 deg: keeps curved faces resolved where the linear
 # finer, in turn, until one holds (BRepMesh's failures can come and go with the deflection alone)
 TOPO_RETRY_FINER = (0.7, 0.5)
 MERGE_TOL_REL = 1e-9  # of the bbox diagonal: nodes of different faces closer than this are one node
+T_JUNCTION_TOL_MM = 1e-7  # a vertex this near an open edge of the DST mesh is a T-junction on it
 
 # --- sampling --------------------------------------------------------------------------------------
 SEGMENT_FILL = 0.97  # aim segments at 97% of the budget: Newton moves points by up to ~1% of a span

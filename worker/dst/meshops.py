@@ -47,3 +47,50 @@ def signed_volume(xyz: np.ndarray, tris: np.ndarray) -> float:
     """Signed volume (mm^3) enclosed by a closed triangle mesh (divergence theorem); > 0 if outward."""
     a, b, c = xyz[tris[:, 0]], xyz[tris[:, 1]], xyz[tris[:, 2]]
     return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+
+
+def split_t_junctions(xyz: np.ndarray, tris: np.ndarray, tol: float) -> tuple[np.ndarray, int]:
+    """``tris`` with each triangle whose open edge passes within ``tol`` (mm) of another open edge's
+    vertex, strictly between its ends, split there (a fan from its opposite corner); and how many
+    were split. Such a T-junction is left where a piece of a triangle collapsed onto a line is
+    dropped though its corners are three points, not a path there and back (bug29241 turned (37,
+    -61, 113) at 0.3 mm layers: a node between a crossing and another node, all on a straight
+    line: its neighbours' edges from the crossing to the far node and to the near one). A triangle
+    with more than one such edge is left as it is."""
+    opened = open_edges(tris, len(xyz))
+    if not len(opened):
+        return tris, 0
+    ends = np.unique(opened)
+    n = len(xyz)
+    key = np.concatenate(
+        [tris[:, 0] * n + tris[:, 1], tris[:, 1] * n + tris[:, 2], tris[:, 2] * n + tris[:, 0]]
+    )
+    order = np.argsort(key)
+    at = order[np.searchsorted(key[order], opened[:, 0] * n + opened[:, 1])]
+    tri_of, corner_of = at % len(tris), at // len(tris)  # the triangle and its corner a edge starts at
+    splits: dict[int, tuple[int, list[int]]] = {}
+    for (a, b), t, j in zip(opened.tolist(), tri_of.tolist(), corner_of.tolist(), strict=True):
+        pa, ab = xyz[a], xyz[b] - xyz[a]
+        length = float(np.linalg.norm(ab))
+        if length <= 2.0 * tol:
+            continue
+        along = (xyz[ends] - pa) @ (ab / length)
+        off = np.linalg.norm(xyz[ends] - pa - np.outer(along / length, ab), axis=1)
+        on = (along > tol) & (along < length - tol) & (off <= tol)
+        if not on.any():
+            continue
+        if t in splits:
+            splits[t] = (-1, [])  # two split edges: left as it is
+            continue
+        splits[t] = (j, ends[on][np.argsort(along[on])].tolist())
+    out, done = [], np.zeros(len(tris), dtype=bool)
+    for t, (j, inner) in splits.items():
+        if j < 0:
+            continue
+        a, b, c = (int(tris[t, (j + k) % 3]) for k in range(3))
+        chain = [a, *inner, b]
+        out.extend((p, q, c) for p, q in zip(chain, chain[1:], strict=False))
+        done[t] = True
+    if not done.any():
+        return tris, 0
+    return np.concatenate([tris[~done], np.asarray(out, dtype=tris.dtype).reshape(-1, 3)]), int(done.sum())

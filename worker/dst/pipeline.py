@@ -16,7 +16,7 @@ from OCP.BRepBndLib import BRepBndLib
 from worker.dst import constants as C
 from worker.dst.errors import ResourceLimitExceeded, TessellationError, UnmeshedFaceError
 from worker.dst.lowest import snap_extremes
-from worker.dst.meshops import edge_defects, signed_volume
+from worker.dst.meshops import edge_defects, signed_volume, split_t_junctions
 from worker.dst.params import SliceParams
 from worker.dst.planes import PlanePlan, plan_planes
 from worker.dst.ridges import prepare_extremes
@@ -178,6 +178,7 @@ def slice_part(
         "local_extremes_snapped": local_extremes,
         "ridge_nodes": ridge_nodes,
         "grazed_nodes": grazed_nodes,
+        "t_junctions": 0,  # triangles split where a collapsed piece left one (see split_t_junctions)
     }
     sampling_totals = SamplingStats()
     for si, (mesh, topo) in enumerate(zip(meshes, topos, strict=True)):
@@ -204,7 +205,16 @@ def slice_part(
     ring = vertex_plane >= 0
     # exactly the float32 height the section was computed at (and that the STL will hold)
     vertices[ring, 2] = planes.section_z[vertex_plane[ring]]
-    volume = check_mesh(vertices, triangles)
+    try:
+        volume = check_mesh(vertices, triangles)
+    except TessellationError:
+        # open edges can be T-junctions (``split_t_junctions``): judged on the exact points, before
+        # the rings were put on their float32 planes
+        triangles, split = split_t_junctions(pool.xyz, triangles, C.T_JUNCTION_TOL_MM)
+        if not split:
+            raise
+        volume = check_mesh(vertices, triangles)
+        stats["t_junctions"] = split
     warnings.extend(simplification_warnings(params))
     if stats["tangent_segments"]:
         warnings.append(

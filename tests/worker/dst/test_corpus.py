@@ -681,6 +681,22 @@ def test_crossings_at_one_point_are_one_vertex_of_the_ring_and_of_the_triangles_
     assert_slab_property(mesh)
 
 
+@pytest.mark.slow
+def test_a_piece_collapsed_onto_a_line_through_three_points_leaves_no_hole():
+    """bug29241 turned (37, -61, 113) at 0.3 mm layers (5 mm segments, 0.2 mm chord): a topology
+    triangle's piece above z = 277.05 is a crossing and two nodes on one straight line (2e-12 mm
+    off it). The piece was dropped as collapsed, which only closes the mesh for a path there and
+    back; here its neighbours hold the long edge and the two short ones, and the build failed its
+    mesh check (3 open edges). The neighbour on the long edge is now split at the middle point
+    (``split_t_junctions``)."""
+    path, params = _turned("mechanical/bug29241.stp", (37.0, -61.0, 113.0))
+    params = params.model_copy(update={"layer_height": 0.3, "segment_length": 5.0, "chord_error": 0.2})
+    mesh = slice_step(path, params)  # raises TessellationError where the mesh check fails
+    assert mesh.stats["t_junctions"] >= 1
+    assert_watertight(mesh)
+    assert_slab_property(mesh)
+
+
 @pytest.mark.parametrize(
     ("scale", "failure"), [(1.0, "face 5 could not be meshed"), (1.2, "surface mesh is not closed")]
 )

@@ -1,6 +1,6 @@
 import numpy as np
 
-from worker.dst.meshops import edge_defects, open_edges, signed_volume
+from worker.dst.meshops import edge_defects, open_edges, signed_volume, split_t_junctions
 
 # a unit right tetrahedron, outward oriented
 XYZ = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
@@ -38,3 +38,29 @@ def test_open_edges_are_the_directed_edges_whose_reverse_is_missing():
     assert open_edges(np.concatenate([TET, TET[:1]]), 4).shape == (0, 2)
     assert sorted(map(tuple, open_edges(TET[:1], 4).tolist())) == [(0, 2), (1, 0), (2, 1)]
     assert open_edges(np.empty((0, 3), dtype=np.int64), 0).shape == (0, 2)
+
+
+def _t_junction(offset: float) -> tuple[np.ndarray, np.ndarray]:
+    """The tetrahedron with face (0, 1, 3) split at vertex 4 beside the middle of edge 0-1 (``offset``
+    mm off it, in -y: outside), and face (0, 2, 1) not: a T-junction."""
+    xyz = np.vstack([XYZ, [[0.5, -offset, 0.0]]])
+    tris = np.array([[0, 2, 1], [0, 4, 3], [4, 1, 3], [0, 3, 2], [1, 2, 3]])
+    return xyz, tris
+
+
+def test_a_t_junction_is_closed_by_splitting_the_triangle_whose_edge_it_lies_on():
+    xyz, tris = _t_junction(0.0)
+    assert edge_defects(tris, 5) == (3, 0)
+    out, split = split_t_junctions(xyz, tris, 1e-7)
+    assert split == 1
+    assert edge_defects(out, 5) == (0, 0)
+    assert signed_volume(xyz, out) == 1.0 / 6.0  # the same surface, in one more triangle
+    assert sorted(map(tuple, out[-2:].tolist())) == [(1, 4, 2), (4, 0, 2)]
+
+
+def test_a_vertex_off_the_open_edge_or_a_closed_mesh_is_left_alone():
+    xyz, tris = _t_junction(1e-6)  # ten times the tolerance off the edge
+    out, split = split_t_junctions(xyz, tris, 1e-7)
+    assert split == 0 and out is tris
+    out, split = split_t_junctions(XYZ, TET, 1e-7)
+    assert split == 0 and out is TET
