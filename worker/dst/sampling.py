@@ -1184,12 +1184,16 @@ class RingSampler(RunRefiner):
 
     def _drop_off_trim(self, cl: list[int], vids: list[int], nxt_pos: np.ndarray) -> None:
         """Drop (in place, and for every triangle that uses it) each crossing of this loop whose root
-        lies beyond its face's trim: it becomes the vertex of the nearer of the ring neighbours that
-        bracket it (an edge collapse: the triangles between the two vanish, the others keep the mesh
-        closed). Such a root lies on the surface's extension, not on the B-rep; the crossing's
-        topology edge is inside one face, so its neighbours' segment runs across that face, and is
-        sampled there like any other. (bug27453 at z = 35.9: a root 0.0066 mm off the B-rep between
-        the roots of a sliver's two boundary edges, 0.0011 mm apart.)"""
+        lies beyond its face's trim: a stretch of them between two crossings that stay becomes
+        those two's vertices, the first half of it (by length along the topology crossings) the
+        first one's, the rest the other's (an edge collapse: the triangles between the two vanish,
+        the others keep the mesh closed). Such a root lies on the surface's extension, not on the
+        B-rep; the crossing's topology edge is inside one face, so its neighbours' segment runs
+        across that face, and is sampled there like any other. (bug27453 at z = 35.9: a root 0.0066
+        mm off the B-rep between the roots of a sliver's two boundary edges, 0.0011 mm apart. Each
+        crossing once took the nearer end's vertex: trj3_s1-al-214 turned (-123, 47, -18) at 0.15 mm
+        layers had seven in a fan round one node, the sixth nearer the first end than its
+        neighbours, and the ring went to and fro over one edge three times: non-manifold.)"""
         n = len(cl)
         off = np.array([c in self.off_trim and self.topo.cross_node[c] < 0 for c in cl], dtype=bool)
         if not off.any() or off.all():
@@ -1198,16 +1202,18 @@ class RingSampler(RunRefiner):
         prev_pos[nxt_pos] = np.arange(n)
         xyz = self.pool.xyz
         for i in np.flatnonzero(off).tolist():
-            p = q = i
-            while off[p]:
-                p = int(prev_pos[p])
-            while off[q]:
-                q = int(nxt_pos[q])
-            near = self.topo.cross_xyz[cl[i]]
-            a, b = vids[p], vids[q]
-            keep = a if np.linalg.norm(xyz[a] - near) <= np.linalg.norm(xyz[b] - near) else b
-            self.cross_vid[cl[i]] = vids[i] = keep
-            self.stats.off_trim_crossings += 1
+            if not off[i] or off[int(prev_pos[i])]:
+                continue  # dropped already, or not the first of its stretch
+            stretch = [i]
+            while off[q := int(nxt_pos[stretch[-1]])]:
+                stretch.append(q)
+            a, b = vids[int(prev_pos[i])], vids[q]
+            path = np.vstack([xyz[a], self.topo.cross_xyz[[cl[k] for k in stretch]], xyz[b]])
+            along = np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))
+            for k, s in zip(stretch, along[:-1].tolist(), strict=True):
+                self.cross_vid[cl[k]] = vids[k] = a if s <= 0.5 * along[-1] else b
+                off[k] = False
+                self.stats.off_trim_crossings += 1
 
     def _merge_coincident(self, cl: list[int], vids: list[int], nxt_pos: np.ndarray) -> None:
         """Give (in place, and for every triangle that uses it) each crossing of this loop whose

@@ -681,6 +681,23 @@ def test_crossings_at_one_point_are_one_vertex_of_the_ring_and_of_the_triangles_
     assert_slab_property(mesh)
 
 
+def test_a_stretch_of_crossings_off_the_trim_collapses_onto_its_two_ends_in_order():
+    """trj3_s1-al-214 turned (-123, 47, -18) at 0.15 mm layers: seven crossings in a row round one node at
+    z = 92.3 have their roots beyond face 5's trim. Each took the vertex of the nearer end of the
+    stretch, and the sixth was nearer the first end than the fifth and the seventh were: the ring
+    went A, B, A, B over one edge, and the build failed its mesh check (6 non-manifold edges). The
+    first half of the stretch (by length) now takes the first end's vertex, the rest the other's."""
+    path, params = _turned("freeform/trj3_s1-al-214.stp", (-123.0, 47.0, -18.0))
+    params = params.model_copy(update={"layer_height": 0.15, "segment_length": 2.0, "chord_error": 0.05})
+    mesh = slice_step(path, params)  # raises TessellationError where the mesh check fails
+    assert mesh.stats["off_trim_crossings"] >= 7
+    assert_watertight(mesh)
+    assert_slab_property(mesh)
+    # (not _check_every_plane: at z = 93.825, the next plane with such a stretch, the report finds the
+    # contour turning over in a strip, where the stretches' ends are the same vertices either way)
+    _check_against_exact_sections(mesh)
+
+
 @pytest.mark.slow
 def test_a_piece_collapsed_onto_a_line_through_three_points_leaves_no_hole():
     """bug29241 turned (37, -61, 113) at 0.3 mm layers (5 mm segments, 0.2 mm chord): a topology
