@@ -32,10 +32,18 @@ def _missing(keys: np.ndarray, sorted_keys: np.ndarray) -> np.ndarray:
 
 def open_edges(tris: np.ndarray, n_vertices: int) -> np.ndarray:
     """The directed edges (k, 2) whose reverse is missing: the borders of a mesh's holes."""
+    e, is_open = _directed_edges(tris, n_vertices)
+    return e[is_open]
+
+
+def _directed_edges(tris: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """Every triangle's directed edges (3m, 2), corner 0 -> 1 of all triangles first, then 1 -> 2,
+    then 2 -> 0 (edge ``i`` is triangle ``i % m``'s from its corner ``i // m``), and the mask of
+    those whose reverse is missing."""
     e = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
     if not len(e):
-        return e
-    return e[_missing(e[:, 1] * n_vertices + e[:, 0], np.sort(e[:, 0] * n_vertices + e[:, 1]))]
+        return e, np.zeros(0, dtype=bool)
+    return e, _missing(e[:, 1] * n_vertices + e[:, 0], np.sort(e[:, 0] * n_vertices + e[:, 1]))
 
 
 def repeated_corner(tris: np.ndarray) -> np.ndarray:
@@ -57,25 +65,22 @@ def split_t_junctions(xyz: np.ndarray, tris: np.ndarray, tol: float) -> tuple[np
     -61, 113) at 0.3 mm layers: a node between a crossing and another node, all on a straight
     line: its neighbours' edges from the crossing to the far node and to the near one). A triangle
     with more than one such edge is left as it is."""
-    opened = open_edges(tris, len(xyz))
-    if not len(opened):
+    e, is_open = _directed_edges(tris, len(xyz))
+    at = np.flatnonzero(is_open)
+    if not len(at):
         return tris, 0
+    opened = e[at]
     ends = np.unique(opened)
-    n = len(xyz)
-    key = np.concatenate(
-        [tris[:, 0] * n + tris[:, 1], tris[:, 1] * n + tris[:, 2], tris[:, 2] * n + tris[:, 0]]
-    )
-    order = np.argsort(key)
-    at = order[np.searchsorted(key[order], opened[:, 0] * n + opened[:, 1])]
     tri_of, corner_of = at % len(tris), at // len(tris)  # the triangle and its corner a edge starts at
     splits: dict[int, tuple[int, list[int]]] = {}
     for (a, b), t, j in zip(opened.tolist(), tri_of.tolist(), corner_of.tolist(), strict=True):
-        pa, ab = xyz[a], xyz[b] - xyz[a]
+        ab = xyz[b] - xyz[a]
         length = float(np.linalg.norm(ab))
         if length <= 2.0 * tol:
             continue
-        along = (xyz[ends] - pa) @ (ab / length)
-        off = np.linalg.norm(xyz[ends] - pa - np.outer(along / length, ab), axis=1)
+        rel = xyz[ends] - xyz[a]
+        along = rel @ (ab / length)
+        off = np.linalg.norm(rel - np.outer(along / length, ab), axis=1)
         on = (along > tol) & (along < length - tol) & (off <= tol)
         if not on.any():
             continue

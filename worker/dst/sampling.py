@@ -56,6 +56,9 @@ EXCURSION_MAX_TRACE_MM = 50.0
 SPUR_TURN_COS = -0.9
 # segments against the curve's direction this few ring positions apart are one stretch to re-trace
 EXCURSION_CLUSTER_GAP = 32
+# ring points closer than this in x, y and z are one (a ring drops the repeat: ``_dedupe_cyclic``; a
+# pinned loop's crossings that close share their vertex first: ``_merge_coincident``)
+REPEAT_MM = 1e-9
 
 
 class VertexPool:
@@ -1202,8 +1205,8 @@ class RingSampler(RunRefiner):
         prev_pos[nxt_pos] = np.arange(n)
         xyz = self.pool.xyz
         for i in np.flatnonzero(off).tolist():
-            if not off[i] or off[int(prev_pos[i])]:
-                continue  # dropped already, or not the first of its stretch
+            if off[int(prev_pos[i])]:
+                continue  # not the first of its stretch
             stretch = [i]
             while off[q := int(nxt_pos[stretch[-1]])]:
                 stretch.append(q)
@@ -1212,7 +1215,6 @@ class RingSampler(RunRefiner):
             along = np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))
             for k, s in zip(stretch, along[:-1].tolist(), strict=True):
                 self.cross_vid[cl[k]] = vids[k] = a if s <= 0.5 * along[-1] else b
-                off[k] = False
                 self.stats.off_trim_crossings += 1
 
     def _merge_coincident(self, cl: list[int], vids: list[int], nxt_pos: np.ndarray) -> None:
@@ -1224,7 +1226,7 @@ class RingSampler(RunRefiner):
         1e-10 mm from where two topology edges of one triangle cross the plane, the ring with one of
         the two points and the triangles on both sides with both: three open edges.)"""
         xyz = self.pool.xyz[vids]
-        near = np.abs(xyz[nxt_pos] - xyz).max(axis=1) < 1e-9
+        near = np.abs(xyz[nxt_pos] - xyz).max(axis=1) < REPEAT_MM
         if not near.any() or near.all():
             return
         cross_node = self.topo.cross_node
@@ -1280,7 +1282,7 @@ def _dedupe_cyclic(vids: list[int], pool: VertexPool) -> list[int]:
     if len(vids) > 1:
         p = pool.xyz[vids]
         step = np.abs(p - np.roll(p, 1, axis=0)).max(axis=1)
-        if step.min() >= 1e-9:  # no repeats (the common case)
+        if step.min() >= REPEAT_MM:  # no repeats (the common case)
             return list(vids)
     out: list[int] = []
     for v in vids:
@@ -1336,4 +1338,4 @@ def _uv_of(ev, p: np.ndarray) -> tuple[float, float]:
 
 
 def _close(p, q) -> bool:
-    return abs(p[0] - q[0]) < 1e-9 and abs(p[1] - q[1]) < 1e-9 and abs(p[2] - q[2]) < 1e-9
+    return abs(p[0] - q[0]) < REPEAT_MM and abs(p[1] - q[1]) < REPEAT_MM and abs(p[2] - q[2]) < REPEAT_MM
