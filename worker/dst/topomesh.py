@@ -15,19 +15,22 @@ edge_of : dict[(a, b), int]    fine edges lying on a B-rep edge (a < b) -> index
 
 from __future__ import annotations
 
+import io
 from dataclasses import dataclass
 
 import numpy as np
+from OCP.BinTools import BinTools_ShapeSet
 from OCP.Bnd import Bnd_Box
-from OCP.BRep import BRep_Tool
+from OCP.BRep import BRep_Builder, BRep_Tool
 from OCP.BRepAdaptor import BRepAdaptor_Curve, BRepAdaptor_Surface
 from OCP.BRepBndLib import BRepBndLib
 from OCP.BRepGProp import BRepGProp
 from OCP.BRepMesh import BRepMesh_IncrementalMesh
 from OCP.BRepTools import BRepTools
 from OCP.collections import IndexedMap_TopoDS_Shape_TopTools_ShapeMapHasher as ShapeIndexedMap
-from OCP.gp import gp_Pnt
+from OCP.gp import gp_Identity, gp_Pnt, gp_PntMirror, gp_Scale, gp_Translation
 from OCP.GProp import GProp_GProps
+from OCP.Poly import Poly_Triangulation
 from OCP.ShapeAnalysis import ShapeAnalysis_Surface
 from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE, TopAbs_REVERSED, TopAbs_VERTEX
 from OCP.TopExp import TopExp, TopExp_Explorer
@@ -99,13 +102,17 @@ def build_topomesh(
     stray: list[np.ndarray] = []  # per face: its triangles on a border that no edge polygon bounds
     offset = 0
     unmeshed: list[tuple[int, TopoDS_Face, np.ndarray, np.ndarray]] = []  # index, face, box
+    listed: list[tuple[TopoDS_Face, TopLoc_Location, Poly_Triangulation | None]] = []
     exp = TopExp_Explorer(solid, TopAbs_FACE)
     while exp.More():
         face = TopoDS.Face(exp.Current())
         exp.Next()
         loc = TopLoc_Location()
         tri = BRep_Tool.Triangulation_s(face, loc)
-        if tri is None or tri.NbTriangles() == 0:
+        listed.append((face, loc, None if tri is None or tri.NbTriangles() == 0 else tri))
+    read = iter(read_triangulations([(face, loc, tri) for face, loc, tri in listed if tri is not None]))
+    for face, loc, tri in listed:
+        if tri is None:
             lo, hi = _face_box(face)
             if np.linalg.norm(hi - lo) > TINY_FACE_DEFLECTIONS * deflection:
                 raise UnmeshedFaceError(
@@ -116,7 +123,7 @@ def build_topomesh(
             unmeshed.append((len(faces), face, lo, hi))
             faces.append(FaceEval(BRepAdaptor_Surface(face)))
             continue
-        pts, uvs, t = _face_mesh(face, tri, loc)
+        pts, uvs, t = next(read)
         n = len(pts)
         face_idx = len(faces)
         faces.append(FaceEval(BRepAdaptor_Surface(face)))
@@ -205,28 +212,112 @@ def build_topomesh(
     )
 
 
-def _face_mesh(face: TopoDS_Face, tri, loc: TopLoc_Location):
-    """A face's BRepMesh triangulation: node positions (n, 3) with the location applied, their
-    (u, v) (n, 2) and the triangles (m, 3) as 0-based node ids, counter-clockwise from outside."""
-    uvs = np.array([tri.UVNode(i).Coord() for i in range(1, tri.NbNodes() + 1)], dtype=np.float64)
-    return face_nodes(tri, loc), uvs.reshape(-1, 2), face_triangles(face, tri)
+FaceMesh = tuple[np.ndarray, np.ndarray, np.ndarray]  # (n, 3) xyz, (n, 2) uv, (m, 3) triangles
 
 
-def face_nodes(tri, loc: TopLoc_Location) -> np.ndarray:
-    """The triangulation's node positions (n, 3), mm, with the face's location applied."""
-    n = tri.NbNodes()
+def read_triangulations(
+    faces: list[tuple[TopoDS_Face, TopLoc_Location, Poly_Triangulation]],
+) -> list[FaceMesh]:
+    """Each face's BRepMesh triangulation: node positions (n, 3) with the face's location applied,
+    their (u, v) (n, 2) and the triangles (m, 3) as 0-based node ids, counter-clockwise seen from
+    outside the solid (reversed for a reversed face).
+
+    Read in one pass: OCCT's binary shape writer copies every node, (u, v) and triangle of the
+    triangulations into one buffer (``_written``), ~20x faster than node by node through OCP (the
+    hemisphere's 22,000 nodes: 0.2 s against 0.01 s). Node by node (``_face_mesh``) where that buffer
+    does not hold exactly these triangulations, in this order."""
+    written = _written([tri for _, _, tri in faces]) if faces else []
+    if written is None:
+        return [_face_mesh(face, tri, loc) for face, loc, tri in faces]
+    out = []
+    for (face, loc, _), (xyz, uv, t) in zip(faces, written, strict=True):
+        out.append((_located(xyz, loc), uv, t[:, ::-1] if face.Orientation() == TopAbs_REVERSED else t))
+    return out
+
+
+def _written(tris: list[Poly_Triangulation]) -> list[FaceMesh] | None:
+    """The triangulations as ``BinTools_ShapeSet.WriteTriangulation`` writes them (local node
+    positions, triangles not reversed), or None if the buffer is not the one expected: each
+    triangulation once, in order, with (u, v) and the counts OCP gives."""
+    shapes = BinTools_ShapeSet()
+    shapes.SetWithTriangles(True)
+    shapes.SetWithNormals(False)
+    builder = BRep_Builder()
+    for tri in tris:  # a face of its triangulation only: no edges bringing their other faces' ones
+        carrier = TopoDS_Face()
+        builder.MakeFace(carrier, tri)
+        shapes.Add(carrier)
+    stream = io.BytesIO()
+    shapes.WriteTriangulation(stream)
+    return _parse_triangulations(stream.getvalue(), shapes.FormatNb() >= 4, tris)
+
+
+def _parse_triangulations(
+    buf: bytes, normals_flag: bool, tris: list[Poly_Triangulation]
+) -> list[FaceMesh] | None:
+    """``BinTools_ShapeSet::WriteTriangulation``'s format (little-endian on every platform): a text
+    line "Triangulations N", then per triangulation int32 nodes, int32 triangles, a byte "has (u, v)",
+    [a byte "has normals" from format 4], float64 deflection, float64 (x, y, z) per node, float64
+    (u, v) per node, int32 1-based node ids per triangle, float32 normals if any."""
+    line = buf.find(b"\n")
+    head = buf[:line].split()
+    if len(head) != 2 or head[0] != b"Triangulations" or int(head[1]) != len(tris):
+        return None
+    pos, out = line + 1, []
+    for tri in tris:
+        if pos + 8 > len(buf):
+            return None
+        n_nodes, n_tris = (int(x) for x in np.frombuffer(buf, "<i4", 2, pos))
+        has_uv = buf[pos + 8]
+        has_normals = buf[pos + 9] if normals_flag else 0
+        pos += 9 + normals_flag + 8
+        size = 24 * n_nodes + 16 * n_nodes + 12 * n_tris + (12 * n_nodes if has_normals else 0)
+        if (n_nodes, n_tris) != (tri.NbNodes(), tri.NbTriangles()) or not has_uv or pos + size > len(buf):
+            return None
+        xyz = np.frombuffer(buf, "<f8", 3 * n_nodes, pos).reshape(-1, 3)
+        uv = np.frombuffer(buf, "<f8", 2 * n_nodes, pos + 24 * n_nodes).reshape(-1, 2)
+        t = np.frombuffer(buf, "<i4", 3 * n_tris, pos + 40 * n_nodes).reshape(-1, 3).astype(np.int64) - 1
+        out.append((xyz.copy(), uv.copy(), t))
+        pos += size
+    return out if pos == len(buf) else None
+
+
+def _located(xyz: np.ndarray, loc: TopLoc_Location) -> np.ndarray:
+    """Node positions moved by the face's location, rounded as ``gp_Pnt.Transformed`` rounds them:
+    the same operations in the same order (``gp_Pnt::Transform``, ``gp_Trsf::Transforms``)."""
     if loc.IsIdentity():
-        return np.array([tri.Node(i).Coord() for i in range(1, n + 1)], dtype=np.float64).reshape(-1, 3)
+        return xyz
     trsf = loc.Transformation()
-    return np.array([tri.Node(i).Transformed(trsf).Coord() for i in range(1, n + 1)]).reshape(-1, 3)
+    form = trsf.Form()
+    t = np.array(trsf.TranslationPart().Coord())
+    if form == gp_Identity:
+        return xyz
+    if form == gp_Translation:
+        return xyz + t
+    if form == gp_Scale:
+        return xyz * trsf.ScaleFactor() + t
+    if form == gp_PntMirror:
+        return -xyz + t
+    m = trsf.HVectorialPart()
+    x, y, z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    out = np.column_stack([m.Value(r, 1) * x + m.Value(r, 2) * y + m.Value(r, 3) * z for r in (1, 2, 3)])
+    if trsf.ScaleFactor() != 1.0:
+        out *= trsf.ScaleFactor()
+    return out + t
 
 
-def face_triangles(face: TopoDS_Face, tri) -> np.ndarray:
-    """The triangulation's triangles (m, 3) as 0-based node ids, counter-clockwise seen from outside
-    the solid (reversed for a reversed face)."""
+def _face_mesh(face: TopoDS_Face, tri, loc: TopLoc_Location) -> FaceMesh:
+    """One face's triangulation as ``read_triangulations`` gives it, node by node through OCP."""
+    n = tri.NbNodes()
+    uvs = np.array([tri.UVNode(i).Coord() for i in range(1, n + 1)], dtype=np.float64).reshape(-1, 2)
+    if loc.IsIdentity():
+        xyz = np.array([tri.Node(i).Coord() for i in range(1, n + 1)], dtype=np.float64)
+    else:
+        trsf = loc.Transformation()
+        xyz = np.array([tri.Node(i).Transformed(trsf).Coord() for i in range(1, n + 1)], dtype=np.float64)
     t = np.array([tri.Triangle(i).Get() for i in range(1, tri.NbTriangles() + 1)], dtype=np.int64) - 1
     t = t.reshape(-1, 3)
-    return t[:, ::-1] if face.Orientation() == TopAbs_REVERSED else t
+    return xyz.reshape(-1, 3), uvs, t[:, ::-1] if face.Orientation() == TopAbs_REVERSED else t
 
 
 def _drop_unused_nodes(xyz: np.ndarray, tris: np.ndarray, glob: np.ndarray):

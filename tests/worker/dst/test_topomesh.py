@@ -40,17 +40,16 @@ def _holed_face_mesh(monkeypatch, solid, radius: float):
     counts = np.bincount(mesh.tri_face)
     target = int(counts.argmax())
     centre = mesh.xyz[mesh.tris[mesh.tri_face == target]].mean(axis=1)[counts[target] // 2]
-    real = T._face_mesh
-    seen = []
+    real = T.read_triangulations
 
-    def holed(face, tri, loc):
-        pts, uvs, t = real(face, tri, loc)
-        seen.append(face)
-        if len(seen) - 1 == target:
-            t = t[np.linalg.norm(pts[t].mean(axis=1) - centre, axis=1) > radius]
-        return pts, uvs, t
+    def holed(faces):
+        meshes = real(faces)
+        assert len(meshes) == len(counts), "every face of the solid is meshed"
+        pts, uvs, t = meshes[target]
+        meshes[target] = pts, uvs, t[np.linalg.norm(pts[t].mean(axis=1) - centre, axis=1) > radius]
+        return meshes
 
-    monkeypatch.setattr(T, "_face_mesh", holed)
+    monkeypatch.setattr(T, "read_triangulations", holed)
     return target
 
 
@@ -133,3 +132,78 @@ def test_least_area_patch_of_a_planar_polygon_covers_it_once():
     x, y = pts[:, 0], pts[:, 1]
     polygon_area = 0.5 * abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
     assert sum(areas) == pytest.approx(polygon_area, rel=1e-12)
+
+
+def _meshed_faces(shape, deflection: float = 0.05):
+    """(face, location, triangulation) of every face of ``shape`` after BRepMesh, in explorer order."""
+    from OCP.BRep import BRep_Tool
+    from OCP.BRepMesh import BRepMesh_IncrementalMesh
+    from OCP.TopAbs import TopAbs_FACE
+    from OCP.TopExp import TopExp_Explorer
+    from OCP.TopLoc import TopLoc_Location
+    from OCP.TopoDS import TopoDS
+
+    BRepMesh_IncrementalMesh(shape, deflection, False, 0.35, False)
+    out = []
+    exp = TopExp_Explorer(shape, TopAbs_FACE)
+    while exp.More():
+        face = TopoDS.Face(exp.Current())
+        exp.Next()
+        loc = TopLoc_Location()
+        out.append((face, loc, BRep_Tool.Triangulation_s(face, loc)))
+    return out
+
+
+def _node_by_node(face, loc, tri):
+    """A face's triangulation read through OCP one node and triangle at a time, as OCCT's own
+    ``gp_Pnt::Transformed`` places the nodes."""
+    from OCP.TopAbs import TopAbs_REVERSED
+
+    trsf = loc.Transformation()
+    xyz = np.array([tri.Node(i).Transformed(trsf).Coord() for i in range(1, tri.NbNodes() + 1)])
+    uv = np.array([tri.UVNode(i).Coord() for i in range(1, tri.NbNodes() + 1)])
+    t = np.array([tri.Triangle(i).Get() for i in range(1, tri.NbTriangles() + 1)]) - 1
+    return xyz, uv, t[:, ::-1] if face.Orientation() == TopAbs_REVERSED else t
+
+
+def _moved(shape, kind: str):
+    from OCP.gp import gp_Ax1, gp_Ax2, gp_Dir, gp_Trsf, gp_Vec
+    from OCP.TopLoc import TopLoc_Location
+
+    trsf = gp_Trsf()
+    if kind == "translated":
+        trsf.SetTranslation(gp_Vec(1.5, -20.25, 3.125))
+    elif kind == "turned":  # a rotation about a tilted axis, then a translation
+        trsf.SetRotation(gp_Ax1(gp_Pnt(1, 2, 3), gp_Dir(0.3, -0.5, 0.8)), 0.7)
+        trsf.SetTranslationPart(gp_Vec(-7.0, 0.3, 11.0))
+    elif kind == "mirrored":  # a plane mirror: OCCT keeps it as a matrix and a scale of -1
+        trsf.SetMirror(gp_Ax2(gp_Pnt(0.5, 0, 0), gp_Dir(1, 1, 0.2)))
+    return shape if kind == "in place" else shape.Moved(TopLoc_Location(trsf))
+
+
+@pytest.mark.parametrize("kind", ["in place", "translated", "turned", "mirrored"])
+def test_triangulations_read_in_one_pass_are_the_ones_read_node_by_node(kind):
+    """The bulk reader (OCCT's binary writer parsed with numpy) gives every node, (u, v) and triangle
+    bit for bit as reading them one by one through OCP does, with the face's location applied as
+    OCCT applies it and reversed faces' triangles turned."""
+    from OCP.TopAbs import TopAbs_REVERSED
+
+    faces = _meshed_faces(_moved(build_part("tube").wrapped, kind))
+    assert any(face.Orientation() == TopAbs_REVERSED for face, _, _ in faces)
+    assert T._written([tri for _, _, tri in faces]) is not None, "the one-pass read was not taken"
+    for got, want in zip(T.read_triangulations(faces), (_node_by_node(*f) for f in faces), strict=True):
+        for a, b in zip(got, want, strict=True):
+            assert a.shape == b.shape and np.array_equal(a, b)
+
+
+def test_triangulations_the_one_pass_cannot_tell_apart_are_read_node_by_node():
+    """Two faces sharing one triangulation: OCCT's writer writes it once, so the buffer no longer
+    lines up with the faces and each face is read node by node instead."""
+    faces = _meshed_faces(build_part("cone").wrapped)
+    doubled = faces + faces[:1]
+    assert T._written([tri for _, _, tri in doubled]) is None
+    got = T.read_triangulations(doubled)
+    assert len(got) == len(doubled)
+    for mesh, face in zip(got, doubled, strict=True):
+        for a, b in zip(mesh, _node_by_node(*face), strict=True):
+            assert np.array_equal(a, b)
