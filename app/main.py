@@ -498,6 +498,14 @@ def _artifact_response(
             detail += f" ({job.error_code}: {job.error_message})"
         raise ApiError(409, "mesh_not_ready" if name == "mesh" else "artifact_not_ready", detail)
     meta = job.artifacts.get(name)
+    failed = (job.result or {}).get("report_error")
+    if name != "mesh" and meta is None and failed:
+        raise ApiError(
+            404,
+            "report_failed",
+            f"the deviation report could not be made ({failed['code']}: {failed['message']}); "
+            f"the mesh is at {API}/jobs/{job.id}/mesh",
+        )
     store = _artifacts(request)
     file = ARTIFACTS[name][0]
     if meta is None or not store.exists(job.id, file):

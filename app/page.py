@@ -45,10 +45,11 @@ f.onsubmit = async (e) => {
   const show = (job) => {
     bar.value = job.progress; st.textContent = job.status + ': ' + job.stage;
     if (job.status === 'succeeded') {
-      const l = job.links;
+      const l = job.links, failed = job.result && job.result.report_error;
       links.innerHTML = '<a href="' + l.mesh + '">mesh (STL)</a> · <a href="' + l.mesh +
-        '?format=3mf">mesh (3MF)</a> · <a href="' + l.report_html +
-        '">report</a> · <a href="' + l.report + '">report JSON</a> · <a href="' + l.plot_svg + '">plot</a>';
+        '?format=3mf">mesh (3MF)</a>' + (l.report ? ' · <a href="' + l.report_html +
+        '">report</a> · <a href="' + l.report + '">report JSON</a> · <a href="' + l.plot_svg + '">plot</a>' : '');
+      if (failed) { st.className = 'err'; st.textContent = 'mesh ready; no deviation report (' + failed.code + '): ' + failed.message; }
     } else if (job.error) { st.className = 'err'; st.textContent = job.error.code + ': ' + job.error.message; }
   };
   es.addEventListener('progress', (m) => show(JSON.parse(m.data)));

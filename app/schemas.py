@@ -16,7 +16,8 @@ class ErrorInfo(BaseModel):
     code: str = Field(
         max_length=64,
         description="Stable machine-readable code, e.g. not_step, invalid_parameters, upload_too_large, "
-        "job_not_found, mesh_not_ready, step_read_error, not_a_solid, timeout, resource_limit, worker_crashed.",
+        "job_not_found, mesh_not_ready, report_failed, step_read_error, not_a_solid, timeout, resource_limit, "
+        "worker_crashed.",
     )
     message: str = Field(max_length=4000, description="What went wrong, for people.")
 
@@ -55,6 +56,11 @@ class JobResult(BaseModel):
     )
     warnings: list[str] = Field(
         default_factory=list, max_length=10_000, description="Warnings a user must see."
+    )
+    report_error: ErrorInfo | None = Field(
+        None,
+        description="Why the deviation report could not be made (it failed, crashed or ran out of time "
+        "after the mesh was written): the job succeeded with the mesh alone.",
     )
 
 

@@ -314,10 +314,12 @@ def _cmd_remote(args: argparse.Namespace) -> int:
                 print(f"  {state['progress']:5.0%} {state['stage']}", file=sys.stderr)
             job = c.wait(job["id"])
             c.download_mesh(job["id"], args.output)
-            if args.report:
-                c.download(job["id"], "report", args.report)
-            if args.html:
-                c.download(job["id"], "report.html", args.html)
+            failed = (job.get("result") or {}).get("report_error")
+            if not failed:
+                if args.report:
+                    c.download(job["id"], "report", args.report)
+                if args.html:
+                    c.download(job["id"], "report.html", args.html)
     except DstError as exc:
         print(f"dst: error [{exc.code}]: {exc.message}", file=sys.stderr)
         return EXIT_INPUT if exc.status in (413, 422) or exc.status == 200 else EXIT_INTERNAL
@@ -327,6 +329,12 @@ def _cmd_remote(args: argparse.Namespace) -> int:
     for w in (job.get("result") or {}).get("warnings", []):
         print(f"warning: {w}", file=sys.stderr)
     print(f"wrote {args.output}", file=sys.stderr)
+    if failed:
+        what = f"the deviation report could not be made [{failed['code']}]: {failed['message']}"
+        if args.report or args.html:
+            print(f"dst: error [report_failed]: {what}", file=sys.stderr)
+            return EXIT_INPUT
+        print(f"warning: {what}", file=sys.stderr)
     return 0
 
 

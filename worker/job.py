@@ -17,10 +17,13 @@ def run_job(
     progress: Progress,
     *,
     report_processes: int | None = None,
+    on_mesh: Callable[[dict[str, Any]], None] | None = None,
 ) -> dict[str, Any]:
     """Build ``mesh.stl``, ``report.json``, ``report.html``, ``plot.svg`` and ``plot.png`` in ``job_dir``.
 
     ``report_processes``: helper processes the report may fork at once (see ``build_report``).
+    ``on_mesh``: gets the mesh's summary once ``mesh.stl`` is written whole, before the report is made
+    (so that a report that fails or never ends does not take the mesh with it).
 
     Returns a short summary for the job record. Raises the core's ``DstError`` subclasses on bad input.
     """
@@ -43,7 +46,10 @@ def run_job(
             planes=len(mesh.planes),
             height_mm=float(mesh.stats["height_mm"]),
             dst_seconds=mesh.stats["timings_s"]["total"],
+            warnings=list(mesh.warnings),
         )
+        if on_mesh is not None:
+            on_mesh(dict(result))
         progress("deviation report", 0.55)
 
     def stage(s: str, f: float) -> None:

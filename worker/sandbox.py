@@ -30,7 +30,7 @@ from typing import Any
 
 from worker.dst.forked import die_with_parent
 from worker.settings import Settings
-from worker.storage import ArtifactStore
+from worker.storage import ARTIFACTS, ArtifactStore
 from worker.store import JobStore, this_worker_name
 
 _PROGRESS_EVERY_S = 0.25
@@ -88,8 +88,17 @@ def _child(
         def progress(stage: str, frac: float) -> None:
             conn.send(("progress", stage, float(frac)))
 
+        def mesh_written(summary: dict) -> None:
+            conn.send(("mesh", summary))
+
         result = run_job(
-            Path(job_dir), Path(input_path), params, file_name, progress, report_processes=report_processes
+            Path(job_dir),
+            Path(input_path),
+            params,
+            file_name,
+            progress,
+            report_processes=report_processes,
+            on_mesh=mesh_written,
         )
         conn.send(("done", result))
     except DstError as exc:
@@ -151,6 +160,7 @@ def run_sandboxed(job_id: str, store: JobStore, artifacts: ArtifactStore, settin
     last_beat = last_progress = last_cancel_check = 0.0
     pending: tuple[str, float] | None = None
     outcome: tuple | None = None
+    mesh: dict | None = None  # the mesh's summary, once the job has written it whole
     try:
         while True:
             if parent.poll(0.2):
@@ -163,6 +173,8 @@ def run_sandboxed(job_id: str, store: JobStore, artifacts: ArtifactStore, settin
                     break
                 if msg[0] == "progress":
                     pending = (msg[1], msg[2])
+                elif msg[0] == "mesh":
+                    mesh = msg[1]
                 else:
                     outcome = msg
                     break
@@ -189,14 +201,9 @@ def run_sandboxed(job_id: str, store: JobStore, artifacts: ArtifactStore, settin
                     return "cancelled"
             if t > deadline:
                 _kill(proc)
-                return _finish(
-                    store,
-                    artifacts,
-                    job_id,
-                    "failed",
-                    "timeout",
-                    f"the job ran longer than its {settings.job_timeout_s:g} s limit and was stopped",
-                )
+                limit = f"the job ran longer than its {settings.job_timeout_s:g} s limit and was stopped"
+                outcome = ("error", "timeout", limit)
+                break
     finally:
         parent.close()
     proc.join(10)
@@ -207,16 +214,24 @@ def run_sandboxed(job_id: str, store: JobStore, artifacts: ArtifactStore, settin
             reason = "was killed by the system (out of memory?)" if name == "SIGKILL" else f"crashed ({name})"
         else:
             reason = f"exited unexpectedly (status {code})"
-        return _finish(store, artifacts, job_id, "failed", "worker_crashed", f"the job's process {reason}")
-    if outcome[0] == "error":
+        outcome = ("error", "worker_crashed", f"the job's process {reason}")
+    if outcome[0] == "error" and mesh is None:
         return _finish(store, artifacts, job_id, "failed", outcome[1], outcome[2])
+    result = outcome[1]
+    if outcome[0] == "error":
+        # The mesh was written whole before the report failed, crashed or ran out of time: the job
+        # succeeds with the mesh alone and says why there is no report (nothing of it is kept).
+        for name, (file, _) in ARTIFACTS.items():
+            if name != "mesh":
+                (artifacts.job_dir(job_id) / file).unlink(missing_ok=True)
+        result = mesh | {"report_error": {"code": outcome[1], "message": outcome[2]}}
     try:
         manifest = artifacts.publish(job_id)
     except OSError as exc:
         return _finish(
             store, artifacts, job_id, "failed", "storage_error", f"could not store the results: {exc}"
         )
-    return _finish(store, artifacts, job_id, "succeeded", None, None, result=outcome[1], manifest=manifest)
+    return _finish(store, artifacts, job_id, "succeeded", None, None, result=result, manifest=manifest)
 
 
 def _finish(

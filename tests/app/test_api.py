@@ -207,6 +207,31 @@ def test_failed_job_reports_why(api):
     assert upload(api).status_code == 201
 
 
+def test_a_job_whose_report_failed_serves_its_mesh_and_says_why_there_is_no_report(api):
+    job = upload(api).json()
+    d = api.artifacts.job_dir(job["id"])
+    (d / "mesh.stl").write_bytes(b"solid x\n")
+    api.store.update(
+        job["id"],
+        status="succeeded",
+        progress=1.0,
+        stage="done",
+        finished_at=time.time(),
+        artifacts=api.artifacts.manifest(job["id"]),
+        result={"triangles": 12, "report_error": {"code": "timeout", "message": "ran past 900 s"}},
+    )
+    got = api.get(f"/v1/jobs/{job['id']}").json()
+    assert got["status"] == "succeeded" and got["error"] is None
+    assert got["result"]["report_error"] == {"code": "timeout", "message": "ran past 900 s"}
+    assert got["links"]["mesh"].endswith("/mesh") and got["links"]["report"] is None
+    assert api.get(f"/v1/jobs/{job['id']}/mesh").content == b"solid x\n"
+    for artifact in ("report", "report.html", "plot.svg", "plot.png"):
+        r = api.get(f"/v1/jobs/{job['id']}/{artifact}")
+        err = r.json()["error"]
+        assert r.status_code == 404 and err["code"] == "report_failed"
+        assert "timeout: ran past 900 s" in err["message"] and f"/v1/jobs/{job['id']}/mesh" in err["message"]
+
+
 def test_list_is_paginated_newest_first(api):
     ids = [upload(api, layer_height=0.1 + 0.01 * i).json()["id"] for i in range(5)]
     page = api.get("/v1/jobs", params={"limit": 2}).json()
