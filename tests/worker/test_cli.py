@@ -213,3 +213,63 @@ def test_a_worker_shares_the_cpus_between_its_jobs_reports(monkeypatch):
     monkeypatch.setenv("DST_REPORT_PROCESSES", "7")  # the operator's own setting wins
     cli._share_cpus_between_jobs(2)
     assert os.environ["DST_REPORT_PROCESSES"] == "7"
+
+
+class _ServiceWhoseReportFailed:
+    """``app.client.DstClient`` against a service whose job built its mesh but not its report."""
+
+    downloads: list[str] = []
+
+    def __init__(self, url: str):
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def submit(self, path, **params):
+        return {"id": "0" * 32, "reused": False}
+
+    def events(self, job_id):
+        yield "end", {"progress": 1.0, "stage": "done"}
+
+    def wait(self, job_id):
+        error = {"code": "resource_limit", "message": "the reference would cut 12,000,000 pairs"}
+        return {"id": job_id, "status": "succeeded", "result": {"warnings": [], "report_error": error}}
+
+    def download_mesh(self, job_id, path):
+        self.downloads.append("mesh")
+        with open(path, "wb") as fh:
+            fh.write(b"solid x\n")
+
+    def download(self, job_id, artifact, path):
+        self.downloads.append(artifact)  # the service would answer 404 report_failed
+
+
+@pytest.mark.parametrize(("report", "code"), [(True, 1), (False, 0)])
+def test_remote_writes_the_mesh_of_a_job_whose_report_failed_and_says_why(
+    monkeypatch, tmp_path, capsys, report, code
+):
+    import app.client
+    from worker import cli
+
+    monkeypatch.setattr(app.client, "DstClient", _ServiceWhoseReportFailed)
+    monkeypatch.setattr(_ServiceWhoseReportFailed, "downloads", [])
+    step = tmp_path / "p.step"
+    step.write_text("ISO-10303-21;")
+    args = [
+        "remote",
+        str(step),
+        "-o",
+        str(tmp_path / "p.stl"),
+        *(["--report", str(tmp_path / "r.json")] if report else []),
+    ]
+    assert cli.main(args) == code
+    err = capsys.readouterr().err
+    assert (tmp_path / "p.stl").read_bytes() == b"solid x\n"
+    assert _ServiceWhoseReportFailed.downloads == ["mesh"]  # the missing report is not asked for
+    assert "resource_limit" in err and "12,000,000 pairs" in err
+    assert ("error [report_failed]" in err) == report  # asked for: an error; else a warning
+    assert not (tmp_path / "r.json").exists()
