@@ -32,7 +32,7 @@ from worker.dst.lowest import snap_extremes
 from worker.dst.pipeline import bbox_diagonal
 from worker.dst.ridges import prepare_extremes
 from worker.dst.sampling import RingSampler, VertexPool
-from worker.dst.sections import cut_topology
+from worker.dst.sections import cut_topology, section_pairs_per_plane
 from worker.dst.step_io import LoadedPart
 from worker.dst.topomesh import build_topomesh
 
@@ -115,7 +115,7 @@ def exact_sections(
     for mesh in meshes:
         prepare_extremes(mesh, world, noise)
     # per solid: (loop, corner mask) pairs at each plane, and just below its flat faces
-    per_solid = [_solid_sections(mesh, world, noise, chord, segment_length, helper) for mesh in meshes]
+    per_solid = [_sections_in_runs(mesh, world, noise, chord, segment_length, helper) for mesh in meshes]
     flat = sorted({j for _, below, _ in per_solid for j in below})
     # just below a flat face on plane j: that solid's section there, every other solid's at j
     pairs_below = {j: [p for on, below, _ in per_solid for p in below.get(j, on[j])] for j in flat}
@@ -143,6 +143,41 @@ def exact_sections(
             )
         ),
     )
+
+
+def _sections_in_runs(
+    mesh, world: np.ndarray, noise: np.ndarray, chord: float, segment_length: float, helper: bool = True
+) -> tuple[list[list[Pair]], dict[int, list[Pair]], float | None]:
+    """``_solid_sections`` of runs of consecutive planes, each cut on its own when all of them at once
+    would cross the topology mesh's triangles more than ``MAX_SECTION_PAIRS`` times (the cut's memory
+    limit, which the DST build's coarser topology mesh may keep under while this finer one does not):
+    the same sections, in the memory of one run's cut at a time."""
+    runs = _plane_runs(section_pairs_per_plane(mesh, world), C.MAX_SECTION_PAIRS)
+    if len(runs) == 1:
+        return _solid_sections(mesh, world, noise, chord, segment_length, helper)
+    on: list[list[Pair]] = []
+    below: dict[int, list[Pair]] = {}
+    offsets = []
+    for j0, j1 in runs:
+        part_on, part_below, offset = _solid_sections(
+            mesh, world[j0:j1], noise[j0:j1], chord, segment_length, helper
+        )
+        on.extend(part_on)
+        below.update({j0 + j: pairs for j, pairs in part_below.items()})
+        offsets += [] if offset is None else [offset]
+    return on, below, max(offsets, default=None)
+
+
+def _plane_runs(pairs: np.ndarray, limit: int) -> list[tuple[int, int]]:
+    """Consecutive runs (j0, j1) of planes whose (triangle, plane) pairs add up to at most ``limit``
+    each (a plane over it alone makes a run of its own, which its cut then refuses)."""
+    runs, j0, total = [], 0, 0
+    for j, n in enumerate(pairs.tolist()):
+        if j > j0 and total + n > limit:
+            runs.append((j0, j))
+            j0, total = j, 0
+        total += n
+    return [*runs, (j0, len(pairs))]
 
 
 def _solid_sections(

@@ -96,10 +96,23 @@ class SectionTopology:
 def section_pairs(mesh: TopoMesh, planes: np.ndarray) -> int:
     """How many (triangle, plane) pairs ``cut_topology`` cuts, within the few a node on a plane adds
     or takes away: each triangle's planes from its z range, ahead of the cut's memory."""
-    tz = mesh.xyz[mesh.tris, 2]
-    lo = np.searchsorted(planes, tz.min(axis=1), side="left")
-    hi = np.searchsorted(planes, tz.max(axis=1), side="right")
+    lo, hi = _plane_ranges(mesh, planes)
     return int((hi - lo).sum())
+
+
+def section_pairs_per_plane(mesh: TopoMesh, planes: np.ndarray) -> np.ndarray:
+    """``section_pairs`` plane by plane: (P,) int64."""
+    lo, hi = _plane_ranges(mesh, planes)
+    steps = np.bincount(lo, minlength=len(planes) + 1) - np.bincount(hi, minlength=len(planes) + 1)
+    return np.cumsum(steps)[: len(planes)]
+
+
+def _plane_ranges(mesh: TopoMesh, planes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    # each triangle's planes lo .. hi - 1, from its z range
+    tz = mesh.xyz[mesh.tris, 2]
+    return np.searchsorted(planes, tz.min(axis=1), side="left"), np.searchsorted(
+        planes, tz.max(axis=1), side="right"
+    )
 
 
 def cut_topology(

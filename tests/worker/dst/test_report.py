@@ -1109,3 +1109,56 @@ def test_a_range_of_planes_is_cut_from_its_own_triangles_as_the_whole_mesh_is_cu
             a, b = piece.seg[piece.seg_plane == j], whole.seg[whole.seg_plane == j]
             assert np.array_equal(np.unique(a.reshape(-1, 4), axis=0), np.unique(b.reshape(-1, 4), axis=0))
         assert piece.loops.sum() == (j1 - j0)  # a sphere: one loop a plane
+
+
+def _polyline_gap(p: np.ndarray, q: np.ndarray) -> float:
+    """Largest distance from a point of closed polyline ``p`` to closed polyline ``q`` (brute force)."""
+    a, b = q, np.roll(q, -1, axis=0)
+    ab = b - a
+    t = np.clip(((p[:, None, :] - a) * ab).sum(axis=2) / np.maximum((ab * ab).sum(axis=1), 1e-300), 0.0, 1.0)
+    return float(np.linalg.norm(a + t[..., None] * ab - p[:, None, :], axis=2).min(axis=1).max())
+
+
+def test_a_reference_over_the_cuts_pair_limit_is_cut_in_runs_of_planes(monkeypatch, tmp_path):
+    """The reference's finer topology mesh can cross the planes more often than the cut's memory
+    limit allows where the DST build's does not: it is then cut in runs of planes, each within the
+    limit, and gives the same sections as one cut (flat faces included): the same loops, each within
+    the sampling chord of the other's (the points along a loop may be placed differently)."""
+    from tests.conftest import build_part, write_step
+    from worker.dst import constants as C
+    from worker.dst import reference
+    from worker.dst.errors import ResourceLimitExceeded
+    from worker.dst.sections import section_pairs, section_pairs_per_plane
+
+    part = read_step(write_step(build_part("step_box"), tmp_path / "step_box.step"))
+    heights = 0.1 + 0.2 * np.arange(35)  # plane 20 on the step's flat face at z = 4.1
+    chord = 1e-3
+
+    def sections():
+        return exact_sections(part, heights, chord=chord, segment_length=2.0, deflection=0.01, helper=False)
+
+    whole = sections()
+    mesh, _ = reference._reference_topomesh(part.solids[0], 0.01, 40.0)
+    world = whole.zmin + heights
+    per_plane = section_pairs_per_plane(mesh, world)
+    assert per_plane.sum() == section_pairs(mesh, world) and (per_plane > 0).all()
+    cuts = []
+    real_cut = reference.cut_topology
+    monkeypatch.setattr(
+        reference, "cut_topology", lambda m, p, **kw: cuts.append(len(p)) or real_cut(m, p, **kw)
+    )
+    monkeypatch.setattr(C, "MAX_SECTION_PAIRS", int(per_plane.sum()) // 4)
+    runs = sections()
+    assert len(cuts) >= 4 and max(cuts) < len(heights), "cut in runs of planes"
+    assert runs.flat_planes == whole.flat_planes == [20] and runs.method == whole.method
+    pairs = [(runs.loops[j], whole.loops[j]) for j in range(len(heights))]
+    pairs += [(runs.below_loops[j], whole.below_loops[j]) for j in whole.flat_planes]
+    for got, want in pairs:
+        assert len(got) == len(want) > 0
+        for p in got:  # each loop within the chord of one of the other's, and the other way
+            assert min(_polyline_gap(p, q) for q in want) <= chord
+        for q in want:
+            assert min(_polyline_gap(q, p) for p in got) <= chord
+    monkeypatch.setattr(C, "MAX_SECTION_PAIRS", int(per_plane.max()) // 2)  # a plane alone over the limit
+    with pytest.raises(ResourceLimitExceeded):
+        sections()
