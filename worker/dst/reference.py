@@ -152,13 +152,10 @@ def _sections_in_runs(
     would cross the topology mesh's triangles more than ``MAX_SECTION_PAIRS`` times (the cut's memory
     limit, which the DST build's coarser topology mesh may keep under while this finer one does not):
     the same sections, in the memory of one run's cut at a time."""
-    runs = _plane_runs(section_pairs_per_plane(mesh, world), C.MAX_SECTION_PAIRS)
-    if len(runs) == 1:
-        return _solid_sections(mesh, world, noise, chord, segment_length, helper)
     on: list[list[Pair]] = []
     below: dict[int, list[Pair]] = {}
     offsets = []
-    for j0, j1 in runs:
+    for j0, j1 in _plane_runs(section_pairs_per_plane(mesh, world), C.MAX_SECTION_PAIRS):
         part_on, part_below, offset = _solid_sections(
             mesh, world[j0:j1], noise[j0:j1], chord, segment_length, helper
         )
