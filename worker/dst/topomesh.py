@@ -264,13 +264,14 @@ def _parse_triangulations(
     if len(head) != 2 or head[0] != b"Triangulations" or int(head[1]) != len(tris):
         return None
     pos, out = line + 1, []
+    head_size = 17 + normals_flag  # the counts, the flags and the deflection
     for tri in tris:
-        if pos + 8 > len(buf):
+        if pos + head_size > len(buf):
             return None
         n_nodes, n_tris = (int(x) for x in np.frombuffer(buf, "<i4", 2, pos))
         has_uv = buf[pos + 8]
         has_normals = buf[pos + 9] if normals_flag else 0
-        pos += 9 + normals_flag + 8
+        pos += head_size
         size = 24 * n_nodes + 16 * n_nodes + 12 * n_tris + (12 * n_nodes if has_normals else 0)
         if (n_nodes, n_tris) != (tri.NbNodes(), tri.NbTriangles()) or not has_uv or pos + size > len(buf):
             return None

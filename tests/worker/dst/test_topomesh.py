@@ -207,3 +207,29 @@ def test_triangulations_the_one_pass_cannot_tell_apart_are_read_node_by_node():
     for mesh, face in zip(got, doubled, strict=True):
         for a, b in zip(mesh, _node_by_node(*face), strict=True):
             assert np.array_equal(a, b)
+
+
+def test_a_triangulation_buffer_cut_short_is_not_taken_for_one():
+    """A buffer that ends anywhere inside a triangulation's header or data is refused (None: the
+    faces are then read node by node), not misread or an IndexError."""
+    import io
+
+    from OCP.BinTools import BinTools_ShapeSet
+    from OCP.BRep import BRep_Builder
+    from OCP.TopoDS import TopoDS_Face
+
+    tris = [tri for _, _, tri in _meshed_faces(build_part("tube").wrapped)]
+    shapes, builder = BinTools_ShapeSet(), BRep_Builder()
+    shapes.SetWithTriangles(True)
+    for tri in tris:
+        carrier = TopoDS_Face()
+        builder.MakeFace(carrier, tri)
+        shapes.Add(carrier)
+    stream = io.BytesIO()
+    shapes.WriteTriangulation(stream)
+    buf, flag = stream.getvalue(), shapes.FormatNb() >= 4
+    assert T._parse_triangulations(buf, flag, tris) is not None
+    first = buf.find(b"\n") + 1
+    second = first + 17 + flag + 40 * tris[0].NbNodes() + 12 * tris[0].NbTriangles()
+    for end in [*range(first, first + 19), first + 100, *range(second, second + 19), len(buf) - 1]:
+        assert T._parse_triangulations(buf[:end], flag, tris) is None, end
