@@ -77,6 +77,25 @@ Progress = Callable[[str, float], None]
 # the exact reference: much finer than any mesh it judges
 REFERENCE_CHORD_MM = 1e-3
 REFERENCE_SEGMENT_MM = 2.0
+# How the report's distances are computed (``deviation.compare``), stated in every report
+DISTANCES = (
+    "to the exact section curves as the reference models them between its points (each span the curve "
+    "through its two ends whose curvature runs linearly between the curvatures at its ends, each taken "
+    "from the circle through that point and its neighbours; a span between two section corners, or whose "
+    "curve would bow farther than the reference's chord from it, straight). The nearest span of a "
+    f"point's plane is found exactly: a k-d tree over points every {DENSE_SPACING_MM} mm along the spans "
+    "gives candidates, widened until no nearer span can remain, and the distance is to that span's "
+    "curve. vertex_dev is the largest distance of the cut's vertices. chord_dev is the larger of two "
+    "one-sided maxima: of the cut's vertices and segment midpoints from the reference, and of the "
+    "reference's points and its curves' points over their spans' midpoints from the cut polyline, each "
+    "span's peak taken from the parabola through its three distances (at most the resolution above the "
+    "largest). Only each plane's largest distances are kept, so a point whose distance to the spans or "
+    "segments round it (an upper bound) cannot reach its plane's largest is not searched: the maxima "
+    "are those of a search from every point. perimeter_err compares the cut polyline's length with the "
+    "modelled curves' length. Meshes are cut with a vertex on a plane counting as below it, and a pair "
+    "of cut segments between the same two points (the zero-width slit of a valley edge lying on the "
+    "plane) is dropped, as slicers do when they clean their polygons"
+)
 # Cura drops section loops shorter than this (minimum_polygon_circumference default)
 CURA_MIN_CIRCUMFERENCE_MM = 1.0
 # A measuring helper gets at least this much work (``_plane_costs`` units: cut segments, ~3.5 us of
@@ -596,14 +615,7 @@ def _build_report(
             chord_mm=chord,
             spacing_mm=DENSE_SPACING_MM,
             resolution_mm=chord,
-            distances=(
-                "to the nearest reference segment, exactly (k-d tree over points every "
-                f"{DENSE_SPACING_MM} mm along the segments, then point-to-segment distances); chord_dev is "
-                f"the larger of the two one-sided maxima over points every {DENSE_SPACING_MM} mm along the "
-                "cut and along the reference; meshes are cut with a vertex on a plane counting as below it, "
-                "and a pair of cut segments between the same two points (the zero-width slit of a valley "
-                "edge lying on the plane) is dropped, as slicers do when they clean their polygons"
-            ),
+            distances=DISTANCES,
             seconds=round(ref_seconds, 4),
             loops=int(loops_exact.sum()),
         ),

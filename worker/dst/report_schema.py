@@ -108,7 +108,10 @@ class ReferenceInfo(BaseModel):
     chord_mm: float = Field(
         description="Largest distance between the exact curves and the reference polylines, mm."
     )
-    spacing_mm: float = Field(description="Point spacing along polylines for the two-sided distance, mm.")
+    spacing_mm: float = Field(
+        description="Spacing of the points along the reference's spans (and a cut's segments) that index "
+        "the nearest-span search, mm: every distance is then to the span or segment itself."
+    )
     resolution_mm: float = Field(
         description="Reported distances are within this of the distances to the exact section curves, mm."
     )
