@@ -145,6 +145,23 @@ class SamplingStats:
                 setattr(self, f.name, getattr(self, f.name) + getattr(other, f.name))
 
 
+@dataclass
+class SampledShare:
+    """Free loops sampled by a sampler of their own (``RingSampler.sample_share``), as another
+    sampler of the same solid takes them in (``RingSampler.adopt``): its vertices, its rings as ids
+    into them, and what the sampler keeps of them for the rings and checks that come after."""
+
+    rings: dict[int, list[int]]
+    xyz: np.ndarray  # (n, 3) every vertex the share's sampler added, in order
+    plane: np.ndarray  # (n,)
+    stats: SamplingStats
+    gaps: list[tuple]
+    corner_vids: set[int]
+    gap_vids: set[int]
+    node_vid: dict[int, int]
+    cross_vid: dict[int, int]
+
+
 class RingSampler(RunRefiner):
     """Computes and caches the exact ring vertices of one solid."""
 
@@ -211,6 +228,55 @@ class RingSampler(RunRefiner):
         uv = mesh.tri_uv
         # (u, v) size of each topology triangle: the scale of a Newton step from a seed
         self.tri_uv_scale = np.max(np.linalg.norm(uv - np.roll(uv, 1, axis=1), axis=2), axis=1) + 1e-12
+
+    # --- free loops in shares ----------------------------------------------------------------------
+    def sample_share(self, loop_ids: list[int]) -> SampledShare:
+        """``free_loops(loop_ids)`` by a new sampler of this one's solid and settings, with its own
+        vertex pool (in a forked helper, or here), for ``adopt``."""
+        other = RingSampler(
+            self.mesh,
+            self.topo,
+            VertexPool(),
+            segment_length=self.seg_len,
+            chord_error=self.chord,
+            keep_crossings=self.keep_crossings,
+            halving=self.halving,
+            gap_ends=self.gap_ends,
+        )
+        rings = other.free_loops(loop_ids)
+        return SampledShare(
+            rings=rings,
+            xyz=other.pool.xyz.copy(),
+            plane=other.pool.plane.copy(),
+            stats=other.stats,
+            gaps=other._gaps,
+            corner_vids=other.corner_vids,
+            gap_vids=other.gap_vids,
+            node_vid=other.node_vid,
+            cross_vid=other.cross_vid,
+        )
+
+    def adopt(self, share: SampledShare) -> dict[int, list[int]]:
+        """Take in a share's vertices, counts, gaps and marks; returns its rings as ids into this
+        sampler's pool. A topology node this sampler has already placed (one lying in a plane, that
+        a loop of the share passes too) keeps this sampler's vertex, so the mesh stays joined there;
+        the share's copy is not added."""
+        vid = np.full(len(share.plane), -1, dtype=np.int64)
+        for n, v in share.node_vid.items():
+            own = self.node_vid.get(n)
+            if own is not None:
+                vid[v] = own
+        new = np.flatnonzero(vid < 0)
+        vid[new] = self.pool.extend(share.xyz[new, :2], share.xyz[new, 2], share.plane[new])
+        for n, v in share.node_vid.items():
+            self.node_vid.setdefault(n, int(vid[v]))
+        for c, v in share.cross_vid.items():
+            self.cross_vid.setdefault(c, int(vid[v]))
+        self.corner_vids.update(vid[list(share.corner_vids)].tolist())
+        self.gap_vids.update(vid[list(share.gap_vids)].tolist())
+        self._gaps.extend(share.gaps)
+        self.stats.add(share.stats)
+        return {li: vid[ring].tolist() for li, ring in share.rings.items()}
 
     # --- single exact vertices ---------------------------------------------------------------------
     def node(self, n: int) -> int:

@@ -20,17 +20,23 @@ import math
 import numpy as np
 
 from worker.dst.cuts import segment_pairs_near, side
+from worker.dst.forked import TaskDied, TaskGroup, idle_cores
 from worker.dst.meshops import repeated_corner
 from worker.dst.sampling import RingSampler, VertexPool, distances_to_segments
 from worker.dst.sections import SectionTopology
 
+# Free loops with fewer topology crossings than this are sampled in one share: ~20 ms of sampling
+# or less each side, about what a helper's fork costs.
+FREE_SPLIT_CROSSINGS = 4000
 
-def tessellate_solid(sampler: RingSampler) -> tuple[np.ndarray, dict]:
-    """(F, 3) triangles (vertex ids into ``sampler.pool``) of one solid, and counts for the report."""
+
+def tessellate_solid(sampler: RingSampler, *, helper: bool = True) -> tuple[np.ndarray, dict]:
+    """(F, 3) triangles (vertex ids into ``sampler.pool``) of one solid, and counts for the report.
+    ``helper``: half the free loops may be sampled in a forked helper (``free_rings``)."""
     topo: SectionTopology = sampler.topo
     annulus = topo.comp_is_annulus
     free = annulus[topo.loop_below] & annulus[topo.loop_above]
-    rings: dict[int, list[int]] = sampler.free_loops(np.flatnonzero(free).tolist())
+    rings = free_rings(sampler, np.flatnonzero(free), helper=helper)
     for li in np.flatnonzero(~free).tolist():
         rings[li] = sampler.pinned_loop(li)
     fans: dict[int, list[tuple[int, int, int]]] = {}  # cap component -> its fan
@@ -77,6 +83,30 @@ def tessellate_solid(sampler: RingSampler) -> tuple[np.ndarray, dict]:
         "fanned_caps": len(fans),
     }
     return tris, stats
+
+
+def free_rings(sampler: RingSampler, ids: np.ndarray, *, helper: bool = True) -> dict[int, list[int]]:
+    """Rings of the free loops ``ids``: most of the build's sampling. With enough of them
+    (``FREE_SPLIT_CROSSINGS``), in two shares of alternate planes, each sampled by a sampler of its
+    own; the second in a forked helper where ``helper`` and a core is idle, at the same time as this
+    process samples the first, else here after it. The rings are the same either way (the shares,
+    and the order in which this sampler takes them in, do not depend on where they ran). A helper
+    that dies (killed, crashed) has its share sampled here, as a build without it would."""
+    topo = sampler.topo
+    plane = np.array([topo.loops[li][0] for li in ids.tolist()], dtype=np.int64)
+    crossings = sum(len(topo.loops[li][1]) for li in ids.tolist())
+    if crossings < FREE_SPLIT_CROSSINGS:
+        return sampler.free_loops(ids.tolist())
+    first, second = ids[plane % 2 == 0].tolist(), ids[plane % 2 == 1].tolist()
+    with TaskGroup(forked=helper and idle_cores() > 0, limit=1) as tasks:
+        later = tasks.submit(sampler.sample_share, second)
+        rings = sampler.free_loops(first)
+        try:
+            share = later.result()
+        except TaskDied:
+            share = sampler.sample_share(second)
+    rings.update(sampler.adopt(share))
+    return rings
 
 
 def _fanned_cap(

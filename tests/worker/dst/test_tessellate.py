@@ -1,0 +1,151 @@
+"""The free loops sampled in two shares (``tessellate.free_rings``): the same mesh whether the second
+share runs in a forked helper or here, the same points as one sampler's, and a dead helper's share
+sampled again here."""
+
+from __future__ import annotations
+
+import os
+import signal
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+import worker.dst.tessellate as T
+from tests.worker.dst.meshcheck import assert_watertight
+from worker.dst.forked import fork_available
+from worker.dst.params import SliceParams
+from worker.dst.pipeline import slice_step
+from worker.dst.sampling import RingSampler, SampledShare, SamplingStats, VertexPool
+
+needs_fork = pytest.mark.skipif(not fork_available(), reason="fork is used on Linux only")
+
+
+@pytest.fixture(scope="module")
+def hemisphere_step(tmp_path_factory):
+    from tests.conftest import build_part, write_step
+
+    return write_step(build_part("hemisphere", radius=20.0), tmp_path_factory.mktemp("t") / "hemi.step")
+
+
+def _build(path, monkeypatch, *, idle: int, split: int = T.FREE_SPLIT_CROSSINGS):
+    monkeypatch.setattr(T, "idle_cores", lambda: idle)
+    monkeypatch.setattr(T, "FREE_SPLIT_CROSSINGS", split)
+    return slice_step(path, SliceParams())
+
+
+def _free_crossings(path, monkeypatch) -> int:
+    seen = []
+    original = T.free_rings
+
+    def spy(sampler, ids, *, helper=True):
+        seen.append(sum(len(sampler.topo.loops[li][1]) for li in ids.tolist()))
+        return original(sampler, ids, helper=helper)
+
+    monkeypatch.setattr(T, "free_rings", spy)
+    slice_step(path, SliceParams())
+    monkeypatch.setattr(T, "free_rings", original)
+    return sum(seen)
+
+
+@needs_fork
+def test_the_mesh_is_the_same_whether_the_second_share_ran_in_a_helper_or_here(hemisphere_step, monkeypatch):
+    assert _free_crossings(hemisphere_step, monkeypatch) >= T.FREE_SPLIT_CROSSINGS  # the split happens
+    sampled_in = []  # the process each adopted share was sampled in
+    sample, adopt = RingSampler.sample_share, RingSampler.adopt
+
+    def noting(self, loop_ids):
+        share = sample(self, loop_ids)
+        share.pid = os.getpid()  # travels back with the share
+        return share
+
+    def adopting(self, share):
+        sampled_in.append(share.pid)
+        return adopt(self, share)
+
+    monkeypatch.setattr(RingSampler, "sample_share", noting)
+    monkeypatch.setattr(RingSampler, "adopt", adopting)
+    forked = _build(hemisphere_step, monkeypatch, idle=1)
+    assert len(sampled_in) == 1 and sampled_in[0] != os.getpid()  # in a child
+    sampled_in.clear()
+    here = _build(hemisphere_step, monkeypatch, idle=0)
+    assert sampled_in == [os.getpid()]
+    np.testing.assert_array_equal(forked.vertices, here.vertices)
+    np.testing.assert_array_equal(forked.triangles, here.triangles)
+    assert {k: v for k, v in forked.stats.items() if k != "timings_s"} == {
+        k: v for k, v in here.stats.items() if k != "timings_s"
+    }
+
+
+def test_two_shares_place_the_points_one_sampler_places(hemisphere_step, monkeypatch):
+    """Sampled in shares, each point is the one a single sampler solves (to rounding: a batch's size
+    changes the last bits of its arithmetic); the mesh has the same triangles and is closed."""
+    split = _build(hemisphere_step, monkeypatch, idle=0)
+    whole = _build(hemisphere_step, monkeypatch, idle=0, split=10**12)
+    assert len(split.vertices) == len(whole.vertices) and len(split.triangles) == len(whole.triangles)
+    d, _ = cKDTree(whole.vertices).query(split.vertices)
+    assert d.max() < 1e-9
+    assert split.stats["newton_solves"] == whole.stats["newton_solves"]
+    assert_watertight(split)
+
+
+@needs_fork
+def test_a_helper_that_dies_has_its_share_sampled_here(hemisphere_step, monkeypatch):
+    parent = os.getpid()
+    original = RingSampler.sample_share
+    here_calls = []
+
+    def dying(self, loop_ids):
+        if os.getpid() != parent:
+            os.kill(os.getpid(), signal.SIGKILL)
+        here_calls.append(len(loop_ids))
+        return original(self, loop_ids)
+
+    monkeypatch.setattr(RingSampler, "sample_share", dying)
+    survived = _build(hemisphere_step, monkeypatch, idle=1)
+    assert len(here_calls) == 1 and here_calls[0] > 0  # the dead helper's share, sampled here
+    monkeypatch.setattr(RingSampler, "sample_share", original)
+    here = _build(hemisphere_step, monkeypatch, idle=0)
+    np.testing.assert_array_equal(survived.vertices, here.vertices)
+    np.testing.assert_array_equal(survived.triangles, here.triangles)
+
+
+def test_adopt_keeps_this_samplers_vertex_of_a_node_both_placed(hemisphere_step, monkeypatch):
+    """A share's node vertex that this sampler has already is not added again (the mesh stays joined
+    there); every other vertex is appended, with its crossings, marks, gaps and counts."""
+    captured = []
+    original = T.free_rings
+
+    def capture(sampler, ids, *, helper=True):
+        captured.append(sampler)
+        return original(sampler, ids, helper=helper)
+
+    monkeypatch.setattr(T, "free_rings", capture)
+    slice_step(hemisphere_step, SliceParams())
+    (built,) = captured
+    mesh, topo = built.mesh, built.topo
+    main = RingSampler(mesh, topo, VertexPool(), segment_length=0.8, chord_error=0.025)
+    node = 0
+    own = main.node(node)
+    before = len(main.pool)
+    gap = (0.5, 1.0, 0, [1.0, 2.0, 3.0], [1.5, 2.0, 3.0])
+    share = SampledShare(
+        rings={7: [0, 1, 2]},
+        xyz=np.array([[*mesh.xyz[node][:2], topo.z[node]], [1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]),
+        plane=np.array([topo.node_plane[node], 5, 5]),
+        stats=SamplingStats(newton_solves=3),
+        gaps=[gap],
+        corner_vids={1},
+        gap_vids={2},
+        node_vid={node: 0},
+        cross_vid={11: 1, 12: 2},
+    )
+    rings = main.adopt(share)
+    assert rings == {7: [own, before, before + 1]}
+    assert len(main.pool) == before + 2
+    np.testing.assert_array_equal(main.pool.xyz[before:], share.xyz[1:])
+    np.testing.assert_array_equal(main.pool.plane[before:], [5, 5])
+    assert main.cross_vid[11] == before and main.cross_vid[12] == before + 1
+    assert main.node_vid[node] == own
+    assert before in main.corner_vids and before + 1 in main.gap_vids
+    assert main._gaps == [gap] and main.stats.newton_solves == 3
