@@ -77,10 +77,17 @@ def slice_step(
 
 
 def slice_part(
-    part: LoadedPart, params: SliceParams, *, progress: Progress | None = None, t0: float | None = None
+    part: LoadedPart,
+    params: SliceParams,
+    *,
+    progress: Progress | None = None,
+    t0: float | None = None,
+    helper: bool = True,
 ) -> DstMesh:
     """The DST mesh of ``part`` for ``params``, the part first turned by ``params.rotation`` (the
-    mesh's ``part`` is the turned one: what its report must measure against)."""
+    mesh's ``part`` is the turned one: what its report must measure against). ``helper``: half the
+    free loops may be sampled in a forked helper on an idle core (``tessellate.free_rings``); the
+    mesh is the same either way."""
     report = progress or (lambda stage, frac: None)
     t0 = time.perf_counter() if t0 is None else t0
     part = orient(part, params.rotation)  # the part itself if it is turned already (or not to be)
@@ -189,7 +196,7 @@ def slice_part(
         sampler = RingSampler(
             mesh, topo, pool, segment_length=params.segment_length, chord_error=params.chord_error
         )
-        tris, tstats = tessellate_solid(sampler)
+        tris, tstats = tessellate_solid(sampler, helper=helper)
         timings["tessellate"] = timings.get("tessellate", 0.0) + time.perf_counter() - t
         all_tris.append(tris)
         for k, v in tstats.items():

@@ -361,7 +361,7 @@ def slice_and_report(
             side = _start_occt_side(tasks, part, baselines, nice=BACKGROUND_NICE, exact=False)
             if tasks.limit >= 2:
                 reference = tasks.submit(_exact_reference, part, params, None, False, nice=BACKGROUND_NICE)
-        mesh = slice_part(part, params, progress=lambda s, f: report(s, 0.5 * f), t0=t0)
+        mesh = slice_part(part, params, progress=lambda s, f: report(s, 0.5 * f), t0=t0, helper=tasks.forked)
         if on_mesh is not None:
             on_mesh(mesh)
         # the part's exact box and volume here, while the helpers work: the niced OCCT helper would

@@ -149,3 +149,27 @@ def test_adopt_keeps_this_samplers_vertex_of_a_node_both_placed(hemisphere_step,
     assert main.node_vid[node] == own
     assert before in main.corner_vids and before + 1 in main.gap_vids
     assert main._gaps == [gap] and main.stats.newton_solves == 3
+
+
+def test_a_job_asked_to_run_in_one_process_samples_both_shares_here(hemisphere_step, monkeypatch):
+    """``slice_and_report(processes=1)`` forks nothing: not for its report, nor for the build's
+    second share, even with a core idle."""
+    from worker.dst.report import slice_and_report
+
+    monkeypatch.setattr(T, "idle_cores", lambda: 1)
+    sampled_in = []
+    sample = RingSampler.sample_share
+
+    def noting(self, loop_ids):
+        share = sample(self, loop_ids)
+        share.pid = os.getpid()
+        return share
+
+    def adopting(self, share, adopt=RingSampler.adopt):
+        sampled_in.append(share.pid)
+        return adopt(self, share)
+
+    monkeypatch.setattr(RingSampler, "sample_share", noting)
+    monkeypatch.setattr(RingSampler, "adopt", adopting)
+    slice_and_report(hemisphere_step, SliceParams(), baselines=(), processes=1)
+    assert sampled_in == [os.getpid()]
