@@ -28,6 +28,26 @@ def hemisphere_step(tmp_path_factory):
     return write_step(build_part("hemisphere", radius=20.0), tmp_path_factory.mktemp("t") / "hemi.step")
 
 
+@pytest.fixture
+def sampled_in(monkeypatch) -> list[int]:
+    """The process each share taken in by ``adopt`` was sampled in (its pid travels with it)."""
+    pids: list[int] = []
+    sample, adopt = RingSampler.sample_share, RingSampler.adopt
+
+    def noting(self, loop_ids):
+        share = sample(self, loop_ids)
+        share.pid = os.getpid()
+        return share
+
+    def adopting(self, share):
+        pids.append(share.pid)
+        return adopt(self, share)
+
+    monkeypatch.setattr(RingSampler, "sample_share", noting)
+    monkeypatch.setattr(RingSampler, "adopt", adopting)
+    return pids
+
+
 def _build(path, monkeypatch, *, idle: int, split: int = T.FREE_SPLIT_CROSSINGS):
     monkeypatch.setattr(T, "idle_cores", lambda: idle)
     monkeypatch.setattr(T, "FREE_SPLIT_CROSSINGS", split)
@@ -49,22 +69,11 @@ def _free_crossings(path, monkeypatch) -> int:
 
 
 @needs_fork
-def test_the_mesh_is_the_same_whether_the_second_share_ran_in_a_helper_or_here(hemisphere_step, monkeypatch):
+def test_the_mesh_is_the_same_whether_the_second_share_ran_in_a_helper_or_here(
+    hemisphere_step, monkeypatch, sampled_in
+):
     assert _free_crossings(hemisphere_step, monkeypatch) >= T.FREE_SPLIT_CROSSINGS  # the split happens
-    sampled_in = []  # the process each adopted share was sampled in
-    sample, adopt = RingSampler.sample_share, RingSampler.adopt
-
-    def noting(self, loop_ids):
-        share = sample(self, loop_ids)
-        share.pid = os.getpid()  # travels back with the share
-        return share
-
-    def adopting(self, share):
-        sampled_in.append(share.pid)
-        return adopt(self, share)
-
-    monkeypatch.setattr(RingSampler, "sample_share", noting)
-    monkeypatch.setattr(RingSampler, "adopt", adopting)
+    sampled_in.clear()
     forked = _build(hemisphere_step, monkeypatch, idle=1)
     assert len(sampled_in) == 1 and sampled_in[0] != os.getpid()  # in a child
     sampled_in.clear()
@@ -151,25 +160,11 @@ def test_adopt_keeps_this_samplers_vertex_of_a_node_both_placed(hemisphere_step,
     assert main._gaps == [gap] and main.stats.newton_solves == 3
 
 
-def test_a_job_asked_to_run_in_one_process_samples_both_shares_here(hemisphere_step, monkeypatch):
+def test_a_job_asked_to_run_in_one_process_samples_both_shares_here(hemisphere_step, monkeypatch, sampled_in):
     """``slice_and_report(processes=1)`` forks nothing: not for its report, nor for the build's
     second share, even with a core idle."""
     from worker.dst.report import slice_and_report
 
     monkeypatch.setattr(T, "idle_cores", lambda: 1)
-    sampled_in = []
-    sample = RingSampler.sample_share
-
-    def noting(self, loop_ids):
-        share = sample(self, loop_ids)
-        share.pid = os.getpid()
-        return share
-
-    def adopting(self, share, adopt=RingSampler.adopt):
-        sampled_in.append(share.pid)
-        return adopt(self, share)
-
-    monkeypatch.setattr(RingSampler, "sample_share", noting)
-    monkeypatch.setattr(RingSampler, "adopt", adopting)
     slice_and_report(hemisphere_step, SliceParams(), baselines=(), processes=1)
     assert sampled_in == [os.getpid()]
