@@ -93,10 +93,9 @@ def free_rings(sampler: RingSampler, ids: np.ndarray, *, helper: bool = True) ->
     and the order in which this sampler takes them in, do not depend on where they ran). A helper
     that dies (killed, crashed) has its share sampled here, as a build without it would."""
     topo = sampler.topo
-    plane = np.array([topo.loops[li][0] for li in ids.tolist()], dtype=np.int64)
-    crossings = sum(len(topo.loops[li][1]) for li in ids.tolist())
-    if crossings < FREE_SPLIT_CROSSINGS:
+    if sum(len(topo.loops[li][1]) for li in ids.tolist()) < FREE_SPLIT_CROSSINGS:
         return sampler.free_loops(ids.tolist())
+    plane = np.array([topo.loops[li][0] for li in ids.tolist()], dtype=np.int64)
     first, second = ids[plane % 2 == 0].tolist(), ids[plane % 2 == 1].tolist()
     with TaskGroup(forked=helper and idle_cores() > 0, limit=1) as tasks:
         later = tasks.submit(sampler.sample_share, second)
