@@ -528,6 +528,63 @@ def test_a_corner_off_its_faces_curve_is_joined_to_the_curve_where_it_comes_near
 
 
 @pytest.mark.slow
+def test_report_reference_has_no_points_beyond_a_faces_trim_next_to_a_corner():
+    """bug24595_281390 turned to (-119.7, -47.5, -168.3), z = 43.5: at a corner, face 0's surface lies
+    off the B-rep edge within the file's tolerance and rises slowly, so its curve at the plane runs
+    on past the face's trim. The reference's points there (~100, up to 0.03 mm beyond the trim, on
+    the surface's extension) made a tongue that the DST ring rightly lacks, and the report read a
+    chord_dev of 0.0323 mm (budget 0.025) there. Points beyond the trim next to a corner are dropped
+    up to the first one inside it (``RunRefiner._drop_off_trim_ends``): every reference point near
+    that corner lies on the B-rep, and every exact point of the plane is within the budget of the
+    ring."""
+    path, params = _turned("freeform/bug24595_281390.stp", (-119.7, -47.5, -168.3))
+    mesh = slice_step(path, params)
+    (j,) = np.flatnonzero(np.isclose(mesh.planes.z, 43.5))
+    d, _, pts = _exact_points_from_ring(mesh, mesh.planes.section_z[j : j + 1])
+    assert d.max() <= params.chord_error + 1e-6, pts[np.argmax(d)]
+    corner = np.array([24.8546, 125.2515])  # where the tongue left the corner (the turned part's x, y)
+    near = pts[np.linalg.norm(pts - corner, axis=1) < 0.1]
+    assert len(near) >= 2
+    z = mesh.z_offset + float(mesh.planes.section_z[j])
+    off = distance_to_faces(np.column_stack([near, np.full(len(near), z)]), mesh.part.solids)
+    assert off.max() < 1e-4, off.max()
+
+
+def test_ring_points_next_to_a_corner_lie_inside_their_faces_trim():
+    """trj4_k1_top-pe-214 (edge tolerances up to 0.008 mm): next to many corners a face's section runs
+    on past the face's trim, and the ring's last points before the corner lay there, up to 0.005 mm
+    off the B-rep (40-99 vertices a plane at z = 1.5, 1.7 and 11.1), where the report's reference
+    (which drops them) read a vertex_dev of 0.005-0.009 mm. They are dropped in the build too: every
+    ring vertex at those planes lies on the B-rep."""
+    path, params = _turned("inch/trj4_k1_top-pe-214.stp", (0.0, 0.0, 0.0))
+    mesh = slice_step(path, params)
+    assert mesh.stats["off_trim_end_points"] > 0
+    for z in (1.5, 1.7, 11.1):
+        (j,) = np.flatnonzero(np.isclose(mesh.planes.z, z))
+        ring = mesh.vertices[mesh.vertex_plane == j] + [0.0, 0.0, mesh.z_offset]
+        off = distance_to_faces(ring, mesh.part.solids)
+        assert off.max() < 1e-6, (z, off.max())
+
+
+@pytest.mark.slow
+def test_a_segment_across_a_sharp_tip_is_traced_not_kept_as_a_gap():
+    """bug27453_165-174_piattello turned to (89.5, 112.2, -78.9): at z = 14.7, 24.1 and 101.3 the
+    topology mesh cuts across a tip of the section 0.37 mm deep, and Newton from seeds either side
+    of a watershed lands on either flank, never on the tip: the seed interval closed, and a 1.26 mm
+    segment was kept over budget as a gap of the B-rep (no sharp turn of the ring to look at). Such a
+    gap between two points inside one face is traced along the face (``_gap_segments``): no gap is
+    left, and every exact point at those planes is within the budget of the ring."""
+    path, params = _turned("mechanical/bug27453_165-174_piattello.stp", (89.5, 112.2, -78.9))
+    mesh = slice_step(path, params)
+    assert mesh.stats["tolerance_gaps"] == 0
+    (js,) = np.nonzero(np.isclose(mesh.planes.z[:, None], [14.7, 24.1, 101.3]).any(axis=1))
+    assert len(js) == 3
+    d, plane, pts = _exact_points_from_ring(mesh, mesh.planes.section_z[js])
+    worst = int(np.argmax(d))
+    assert d[worst] <= params.chord_error + 1e-6, (mesh.planes.z[js[plane[worst]]], d[worst], pts[worst])
+
+
+@pytest.mark.slow
 def test_a_segment_round_a_deep_bend_is_split_whatever_its_samples_say():
     """Ventilator turned to (-135.2, -164.2, -177.2), first plane (z = 0.1): a 0.117 mm ring segment
     round a ~0.035 mm bend was sampled at 0.022 mm at its midpoint, one of its quarter points landed
