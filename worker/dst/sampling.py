@@ -214,6 +214,7 @@ class RingSampler(RunRefiner):
         self._pred: np.ndarray | None = None  # previous crossing along its loop (``topo.succ`` inverted)
         self._solving: set[int] = set()  # crossings whose neighbours are being solved
         self._gaps: list[tuple] = []  # (length, z, face, one end, the other): see settle_gaps
+        self._gap_keys: tuple = (0, set(), np.empty(0))  # see _gap_segments
         # vertex ids where the section changes face or meets a B-rep edge: its curvature may jump there
         self.corner_vids: set[int] = set()
         self.gap_vids: set[int] = set()  # points added next to run ends off their curve (refine.py)
@@ -782,12 +783,15 @@ class RingSampler(RunRefiner):
         itself has a corner at an end, and its trace fails."""
         if not self._gaps:
             return []
-        ends = {(*g[3][:2], *g[4][:2]) for g in self._gaps}
-        ends |= {(*g[4][:2], *g[3][:2]) for g in self._gaps}
+        if self._gap_keys[0] != len(self._gaps):  # (the gaps' ends both ways, made again as they grow)
+            ends = {(*g[3][:2], *g[4][:2]) for g in self._gaps}
+            ends |= {(*g[4][:2], *g[3][:2]) for g in self._gaps}
+            self._gap_keys = (len(self._gaps), ends, np.array(sorted({e[0] for e in ends})))
+        _, ends, xs = self._gap_keys
         q = np.roll(p, -1, axis=0)
         n = len(ring)
         out = []
-        for k in np.flatnonzero(np.isin(p[:, 0], [e[0] for e in ends])).tolist():
+        for k in np.flatnonzero(np.isin(p[:, 0], xs)).tolist():
             if (*p[k].tolist(), *q[k].tolist()) not in ends:
                 continue
             a, b = ring[k], ring[(k + 1) % n]
