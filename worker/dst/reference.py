@@ -292,6 +292,7 @@ def _sample_loops(mesh, topo, loop_ids: list[int], chord: float, segment_length:
         keep_crossings=False,
         halving=True,
         gap_ends=False,
+        exact_trim=True,
     )
     annulus = topo.comp_is_annulus
     ids = np.asarray(loop_ids, dtype=np.int64)

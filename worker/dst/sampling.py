@@ -177,6 +177,7 @@ class RingSampler(RunRefiner):
         keep_crossings: bool = True,
         halving: bool = False,
         gap_ends: bool = True,
+        exact_trim: bool = False,
     ):
         self.mesh, self.topo, self.pool = mesh, topo, pool
         self.seg_len = segment_length
@@ -192,6 +193,10 @@ class RingSampler(RunRefiner):
         # file with a loose tolerance, each a sharp turn of the ring that can set off the excursion
         # check's traces; its checks at the chord already split a segment that cuts such a corner.
         self.gap_ends = gap_ends
+        # ``exact_trim``: every point beyond its face's trim next to a corner is dropped, even where the
+        # segment across it strays from it by more than the chord (``RunRefiner._drop_off_trim_ends``):
+        # the report's reference, which must lie on the B-rep
+        self.exact_trim = exact_trim
         self.trace_reach = max(EXCURSION_MAX_TRACE_MM, 100.0 * segment_length)  # a trace's longest
         # a pinned loop's crossings are kept (the kept triangles use them): False where only the
         # loops are wanted (the deviation report's reference), so that a stretch of them in the
@@ -244,6 +249,7 @@ class RingSampler(RunRefiner):
             keep_crossings=self.keep_crossings,
             halving=self.halving,
             gap_ends=self.gap_ends,
+            exact_trim=self.exact_trim,
         )
         rings = other.free_loops(loop_ids)
         return SampledShare(

@@ -567,6 +567,21 @@ def test_ring_points_next_to_a_corner_lie_inside_their_faces_trim():
 
 
 @pytest.mark.slow
+def test_ring_points_off_the_trim_stay_where_the_chord_across_them_would_stray():
+    """boxed_sphere turned to (-85.5, 94.7, -31.9), z = 0.3: next to a corner the build's topology
+    mesh gives a run the wrong face (a narrow one it missed), and the run's two points lie on that
+    face's extension 0.03 mm off the B-rep, 0.023 mm at most from the B-rep's curve. Dropped as
+    beyond the trim, they left a chord 0.085 mm off the curve; they stay where the chord across
+    them would pass farther than the budget from them: every exact point of the plane is within
+    the budget of the ring."""
+    path, params = _turned("assembly/boxed_sphere.step", (-85.5, 94.7, -31.9))
+    mesh = slice_step(path, params)
+    (j,) = np.flatnonzero(np.isclose(mesh.planes.z, 0.3))
+    d, _, pts = _exact_points_from_ring(mesh, mesh.planes.section_z[j : j + 1])
+    assert d.max() <= params.chord_error + 1e-6, pts[np.argmax(d)]
+
+
+@pytest.mark.slow
 def test_a_segment_across_a_sharp_tip_is_traced_not_kept_as_a_gap():
     """bug27453_165-174_piattello turned to (89.5, 112.2, -78.9): at z = 14.7, 24.1 and 101.3 the
     topology mesh cuts across a tip of the section 0.37 mm deep, and Newton from seeds either side
