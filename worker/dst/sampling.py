@@ -785,8 +785,8 @@ class RingSampler(RunRefiner):
         the topology mesh cuts across, never on the tip, and the seed interval between them closes
         (bug27453_165-174_piattello turned (89.5, 112.2, -78.9): 1.26 mm segments across 0.37 mm
         tips at three planes, with no sharp turn of the ring). A trace along the face from one end
-        reaches the other where the curve joins them (``_excursion_runs``); a gap of the B-rep
-        itself has a corner at an end, and its trace fails."""
+        reaches the other where the face's curve joins them (``_excursion_runs``); where it does not
+        (a gap of the B-rep itself), the trace fails and the segment stays."""
         if not self._gaps:
             return []
         if self._gap_keys[0] != len(self._gaps):  # (the gaps' ends both ways, made again as they grow)
