@@ -347,6 +347,7 @@ class RunRefiner:
                     halvable = ~off_path & ~run_traced[ri] & (t_mid >= 0.25) & (t_mid <= 0.75)
                 quarters, q_ok = self._quarter_sags(
                     solve,
+                    (run_face[ri], run_z[ri], run_step[ri]),
                     sag,
                     mid,
                     mid_ok,
@@ -785,6 +786,7 @@ class RunRefiner:
     def _quarter_sags(
         self,
         solve,
+        on,
         sag,
         mid,
         mid_ok,
@@ -813,8 +815,14 @@ class RunRefiner:
         Between the three points the largest distance is taken from the parabola through them (a
         curve whose bend is off-centre peaks between samples: bug24595's 0.028 mm over 0.025), and
         beyond them from the lines through the outer two (a line running into a small fillet at
-        the segment's end: trj4_k1_top's 0.027). Where one quarter point is lost (it lands past the
-        segment's end), the midpoint and the other give the peak (``_zero_end_peak``).
+        the segment's end: trj4_k1_top's 0.027). A quarter point the path puts past the segment's
+        ends is solved again from the chord's quarter point projected on the face (``on``: each
+        segment's face, plane height and Newton step), as a midpoint is (``_midpoints_off_the_path``;
+        trj6_k1-al-214 turned (112.9, 27.5, -64.7) at z = 44.5: both of a 0.167 mm segment's quarter
+        points landed past its ends round a 0.5 mm loop, its midpoint 0.024 mm from the chord, and
+        it passed with the curve 0.028 mm from it). Where one quarter point is still lost, the
+        midpoint and the other give the peak (``_zero_end_peak``). The quarter points solved again
+        serve the peak only (``q_ok`` false: not a half's midpoint for ``_halves``).
         """
         ri, sa, sb, pa, pb = pending
         e = self.chord
@@ -840,6 +848,19 @@ class RunRefiner:
         # (except on a traced run, whose points are all this segment's)
         t_q = _chord_position(pts, pa[q], pb[q])
         ok &= ((t_q > 0.0) & (t_q < 1.0)) | traced[q]
+        on_path = ok.copy()
+        if (lost := np.flatnonzero(~ok)).size:
+            qq = q[lost]
+            guess = pa[qq] + frac[lost, None] * (pb[qq] - pa[qq])
+            face, zc, step = (a[qq] for a in on)
+            p2, ok2, _ = self._solve_from_chord(face, zc, step, guess, pa[qq], pb[qq])
+            found = lost[ok2]
+            pts[found], t_q[found], ok[found] = (
+                p2[ok2],
+                _chord_position(p2[ok2], pa[q[found]], pb[q[found]]),
+                True,
+            )
+            self.stats.quarter_resolves += len(lost)
         q_sag = np.where(ok, point_segment_distance(pts, pa[q], pb[q]), 0.0)
         n = len(ci)
         peak = _parabola_peak(
@@ -860,7 +881,7 @@ class RunRefiner:
         sag[ci] = np.maximum(sag[ci], peak)
         self.stats.quarter_checks += n
         quarters[ci, 0], quarters[ci, 1] = pts[:n], pts[n:]
-        q_ok[ci, 0], q_ok[ci, 1] = ok[:n], ok[n:]
+        q_ok[ci, 0], q_ok[ci, 1] = on_path[:n], on_path[n:]
         return quarters, q_ok
 
     def _halves(self, pending, over, mid, mid_s, quarters, q_ok) -> tuple[np.ndarray, tuple]:

@@ -589,6 +589,19 @@ def test_ring_points_off_the_trim_stay_where_the_chord_across_them_would_stray()
 
 
 @pytest.mark.slow
+def test_quarter_points_the_seed_path_puts_past_their_segment_are_solved_from_its_chord():
+    """trj6_k1-al-214 turned to (112.9, 27.5, -64.7), z = 44.5: round a loop 0.5 mm across, the seed
+    path put both quarter points of a 0.167 mm segment past its ends, and its midpoint, 0.024 mm
+    from the chord, passed with the curve 0.028 mm from it (budget 0.025). Such quarter points are
+    solved again from the chord's quarter points (``stats['quarter_resolves']``): every exact point
+    of the plane is within the budget of the ring."""
+    path, params = _turned("freeform/trj6_k1-al-214.stp", (112.9, 27.5, -64.7))
+    mesh = slice_step(path, params)
+    assert mesh.stats["quarter_resolves"] > 0
+    _assert_planes_within_budget(mesh, 44.5)
+
+
+@pytest.mark.slow
 def test_a_segment_across_a_sharp_tip_is_traced_not_kept_as_a_gap():
     """bug27453_165-174_piattello turned to (89.5, 112.2, -78.9): at z = 14.7, 24.1 and 101.3 the
     topology mesh cuts across a tip of the section 0.37 mm deep, and Newton from seeds either side
