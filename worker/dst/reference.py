@@ -12,7 +12,7 @@ build's coarser topology missed still shows up here. ``occt_sections`` computes 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import TypeVar
 
 import numpy as np
@@ -66,6 +66,9 @@ class ExactSections:
     zmin, zmax : the part's exact lowest and highest z in its own coordinates, mm
     chord : largest distance between the exact curve and the polylines, mm
     method : how the points were computed (for the report)
+    unresolved : per plane where the sampling left segments over ``chord`` after its last round
+        (``RingSampler.keep_unresolved``), (how many, the longest in mm): between their exact ends
+        the reference is a straight segment there
     """
 
     heights: np.ndarray
@@ -78,6 +81,7 @@ class ExactSections:
     flat_planes: list[int]
     below_loops: dict[int, list[np.ndarray]]
     below_corners: dict[int, list[np.ndarray]]
+    unresolved: dict[int, tuple[int, float]] = field(default_factory=dict)
 
     def perimeters(self) -> np.ndarray:
         return np.array([sum(closed_length(p) for p in ls) for ls in self.loops])
@@ -116,11 +120,16 @@ def exact_sections(
         prepare_extremes(mesh, world, noise)
     # per solid: (loop, corner mask) pairs at each plane, and just below its flat faces
     per_solid = [_sections_in_runs(mesh, world, noise, chord, segment_length, helper) for mesh in meshes]
-    flat = sorted({j for _, below, _ in per_solid for j in below})
+    flat = sorted({j for _, below, _, _ in per_solid for j in below})
     # just below a flat face on plane j: that solid's section there, every other solid's at j
-    pairs_below = {j: [p for on, below, _ in per_solid for p in below.get(j, on[j])] for j in flat}
-    pairs = [[p for on, _, _ in per_solid for p in on[j]] for j in range(n_planes)]
-    offsets = [off for _, _, off in per_solid if off is not None]
+    pairs_below = {j: [p for on, below, _, _ in per_solid for p in below.get(j, on[j])] for j in flat}
+    pairs = [[p for on, _, _, _ in per_solid for p in on[j]] for j in range(n_planes)]
+    offsets = [off for *_, off in per_solid if off is not None]
+    unresolved: dict[int, tuple[int, float]] = {}
+    for _, _, short, _ in per_solid:
+        for j, (n, longest) in short.items():
+            n0, longest0 = unresolved.get(j, (0, 0.0))
+            unresolved[j] = (n0 + n, max(longest0, longest))
     return ExactSections(
         heights=np.asarray(heights, dtype=np.float64),
         loops=[[lp for lp, _ in ps] for ps in pairs],
@@ -131,6 +140,7 @@ def exact_sections(
         flat_planes=flat,
         below_loops={j: [lp for lp, _ in ps] for j, ps in pairs_below.items()},
         below_corners={j: [c for _, c in ps] for j, ps in pairs_below.items()},
+        unresolved=unresolved,
         method=(
             f"sections found on a topology mesh of deflection {_deflections(used)} mm, their "
             "points solved exactly on the B-rep faces and edges (Newton / Brent, |z - plane| < "
@@ -147,22 +157,24 @@ def exact_sections(
 
 def _sections_in_runs(
     mesh, world: np.ndarray, noise: np.ndarray, chord: float, segment_length: float, helper: bool = True
-) -> tuple[list[list[Pair]], dict[int, list[Pair]], float | None]:
+) -> tuple[list[list[Pair]], dict[int, list[Pair]], dict[int, tuple[int, float]], float | None]:
     """``_solid_sections`` of runs of consecutive planes, each cut on its own when all of them at once
     would cross the topology mesh's triangles more than ``MAX_SECTION_PAIRS`` times (the cut's memory
     limit, which the DST build's coarser topology mesh may keep under while this finer one does not):
     the same sections, in the memory of one run's cut at a time."""
     on: list[list[Pair]] = []
     below: dict[int, list[Pair]] = {}
+    unresolved: dict[int, tuple[int, float]] = {}
     offsets = []
     for j0, j1 in _plane_runs(section_pairs_per_plane(mesh, world), C.MAX_SECTION_PAIRS):
-        part_on, part_below, offset = _solid_sections(
+        part_on, part_below, part_unresolved, offset = _solid_sections(
             mesh, world[j0:j1], noise[j0:j1], chord, segment_length, helper
         )
         on.extend(part_on)
         below.update({j0 + j: pairs for j, pairs in part_below.items()})
+        unresolved.update({j0 + j: short for j, short in part_unresolved.items()})
         offsets += [] if offset is None else [offset]
-    return on, below, max(offsets, default=None)
+    return on, below, unresolved, max(offsets, default=None)
 
 
 def _plane_runs(pairs: np.ndarray, limit: int) -> list[tuple[int, int]]:
@@ -179,10 +191,11 @@ def _plane_runs(pairs: np.ndarray, limit: int) -> list[tuple[int, int]]:
 
 def _solid_sections(
     mesh, world: np.ndarray, noise: np.ndarray, chord: float, segment_length: float, helper: bool = True
-) -> tuple[list[list[Pair]], dict[int, list[Pair]], float | None]:
+) -> tuple[list[list[Pair]], dict[int, list[Pair]], dict[int, tuple[int, float]], float | None]:
     """One solid's dense sections: (loop, corner mask) pairs per plane, and per plane through a flat
     face of the solid, the pairs just below the face (the per-plane ones are then just above it);
-    and the offset from the face those two were taken at (None without a flat face)."""
+    the segments not resolved to the chord, per plane (``_sample``); and the offset from the face
+    the sections at a flat face were taken at (None without a flat face)."""
     topo = cut_topology(mesh, world, on_plane_tol=C.ON_PLANE_TOL_MM, noise_tol=noise)
     if not topo.flat_planes:
         return *_sample(
@@ -212,7 +225,13 @@ def _solid_sections(
         lowered = np.concatenate([np.zeros(len(world), dtype=bool), np.ones(len(j), dtype=bool)])[order]
         tight = 0.25 * offset
         cut = cut_topology(placed, ext[order], on_plane_tol=tight, noise_tol=np.full(len(ext), tight))
-        return *_sample(placed, cut, owner, lowered, topo.flat_planes, chord, segment_length, helper), offset
+        on, below, unresolved = _sample(
+            placed, cut, owner, lowered, topo.flat_planes, chord, segment_length, helper
+        )
+        # segments left unresolved at one offset may not be at the next, as one that fails there
+        if unresolved and offset != FLAT_FACE_OFFSETS_MM[-1]:
+            raise TessellationError(f"{len(unresolved)} planes with unresolved segments")
+        return on, below, unresolved, offset
 
     return _first_that_works(at, FLAT_FACE_OFFSETS_MM)
 
@@ -230,7 +249,8 @@ def _first_that_works(fn: Callable[[float], T], values: tuple[float, ...]) -> T:
 
 def _sample(mesh, topo, owner, lowered, flat, chord, segment_length, helper=True):
     """The dense loops of a cut, as (loop, corner mask) pairs per plane ``owner[e]`` of each cut
-    plane ``e``, the ``lowered`` ones apart per flat plane.
+    plane ``e``, the ``lowered`` ones apart per flat plane; and per plane ``owner[e]``, the segments
+    its samplers left unresolved (``RingSampler.keep_unresolved``) as (how many, the longest).
 
     The sampling (most of the reference's work after its topology mesh) is done in shares of the
     cut's planes (``_plane_shares``), each by a sampler of its own, one after the other; with
@@ -241,6 +261,7 @@ def _sample(mesh, topo, owner, lowered, flat, chord, segment_length, helper=True
     share nodes lying in the plane), and each share's loops are the same wherever it runs."""
     shares = _plane_shares(topo, SAMPLING_SHARES)
     sampled: dict[int, Pair] = {}
+    unresolved: list[tuple[int, float]] = []
     with TaskGroup(forked=helper and len(shares) > 1, limit=1) as tasks:
         later = None
         while shares:
@@ -248,25 +269,41 @@ def _sample(mesh, topo, owner, lowered, flat, chord, segment_length, helper=True
                 half = len(shares) // 2
                 later = tasks.submit(_sample_shares, mesh, topo, shares[-half:], chord, segment_length)
                 shares = shares[:-half]
-            sampled.update(_sample_loops(mesh, topo, shares.pop(0), chord, segment_length))
+            loops, short = _sample_loops(mesh, topo, shares.pop(0), chord, segment_length)
+            sampled.update(loops)
+            unresolved += short
         if later is not None:
-            sampled.update(later.result())
+            loops, short = later.result()
+            sampled.update(loops)
+            unresolved += short
     on_plane: list[list[Pair]] = [[] for _ in range(int(owner.max()) + 1 if len(owner) else 0)]
     below: dict[int, list[Pair]] = {int(k): [] for k in flat}
     for li in sorted(sampled):
         e = int(topo.loops[li][0])
         (below[int(owner[e])] if lowered[e] else on_plane[int(owner[e])]).append(sampled[li])
-    return on_plane, below
+    return on_plane, below, _by_plane((int(owner[e]), length) for e, length in unresolved)
+
+
+def _by_plane(segments) -> dict[int, tuple[int, float]]:
+    """Segments (plane, length) as plane -> (how many, the longest)."""
+    out: dict[int, tuple[int, float]] = {}
+    for j, length in segments:
+        n, longest = out.get(j, (0, 0.0))
+        out[j] = (n + 1, max(longest, length))
+    return out
 
 
 def _sample_shares(
     mesh, topo, shares: list[list[int]], chord: float, segment_length: float
-) -> dict[int, Pair]:
+) -> tuple[dict[int, Pair], list[tuple[int, float]]]:
     """``_sample_loops`` of each share, one after the other (in a helper)."""
     out: dict[int, Pair] = {}
+    unresolved: list[tuple[int, float]] = []
     for ids in shares:
-        out.update(_sample_loops(mesh, topo, ids, chord, segment_length))
-    return out
+        loops, short = _sample_loops(mesh, topo, ids, chord, segment_length)
+        out.update(loops)
+        unresolved += short
+    return out, unresolved
 
 
 def _plane_shares(topo, n: int) -> list[list[int]]:
@@ -279,8 +316,11 @@ def _plane_shares(topo, n: int) -> list[list[int]]:
     return [ids for ids in by_share if ids]
 
 
-def _sample_loops(mesh, topo, loop_ids: list[int], chord: float, segment_length: float) -> dict[int, Pair]:
-    """The (dense loop, corner mask) of each of ``loop_ids``, by a sampler of their own."""
+def _sample_loops(
+    mesh, topo, loop_ids: list[int], chord: float, segment_length: float
+) -> tuple[dict[int, Pair], list[tuple[int, float]]]:
+    """The (dense loop, corner mask) of each of ``loop_ids``, by a sampler of their own, and the
+    segments it could not resolve to the chord (``RingSampler.unresolved``: cut plane, length)."""
     pool = VertexPool()
     # halving: about half the Newton solves of checking every span at the chord (see RingSampler)
     sampler = RingSampler(
@@ -293,6 +333,7 @@ def _sample_loops(mesh, topo, loop_ids: list[int], chord: float, segment_length:
         halving=True,
         gap_ends=False,
         exact_trim=True,
+        keep_unresolved=True,
     )
     annulus = topo.comp_is_annulus
     ids = np.asarray(loop_ids, dtype=np.int64)
@@ -304,7 +345,7 @@ def _sample_loops(mesh, topo, loop_ids: list[int], chord: float, segment_length:
     return {
         li: (xyz[vids, :2].copy(), np.array([v in sampler.corner_vids for v in vids], dtype=bool))
         for li, vids in rings.items()
-    }
+    }, sampler.unresolved
 
 
 def occt_sections(

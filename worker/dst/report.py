@@ -67,6 +67,7 @@ from worker.dst.report_warnings import (
     reference_fault_warning,
     reference_gap_warnings,
     self_crossing_warning,
+    unresolved_reference_warning,
 )
 from worker.dst.step_io import LoadedPart, occt_version, orient, read_step
 from worker.dst.stl_io import binary_stl_corners, merge_equal_vertices
@@ -594,6 +595,8 @@ def _build_report(
             )
     if fault := reference_fault_warning(ref.loops, results, planes_z, params.chord_error, chord):
         warnings.append(fault)
+    if short := unresolved_reference_warning(ref.unresolved, planes_z, chord):
+        warnings.append(short)
     box_lo, box_hi = occt.xy_box
     warnings.extend(placement_warnings(todo, box_lo, box_hi))
 

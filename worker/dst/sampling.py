@@ -118,6 +118,7 @@ class SamplingStats:
     tangent_segments: int = 0  # segments kept over budget where the plane is tangent to the surface
     newton_failures: int = 0  # seeds with no exact point (dropped; see tangent_segments)
     outside_face_points: int = 0  # points beyond a face's trim (a nearly tangent edge), dropped
+    pole_points: int = 0  # points Newton put past a pole of their face, solved on it (``_through_poles``)
     excursions: int = 0  # segments re-sampled along an excursion of the curve they skipped
     excursion_failures: int = 0  # segments suspected of skipping one that could not be traced
     spur_vertices: int = 0  # ring vertices dropped as tips of spurs onto a face's extension
@@ -131,6 +132,7 @@ class SamplingStats:
     end_bend_checks: int = 0  # run end segments checked again for a bend at their corner (END_BEND_FACTOR)
     gap_ends: int = 0  # points added next to run ends off their face's curve (GAP_END_REL)
     unchecked_segments: int = 0  # segments whose midpoint could not be placed (see _midpoints_off_the_path)
+    unresolved_segments: int = 0  # segments still over budget after every round (``keep_unresolved``)
     off_trim_crossings: int = 0  # crossings whose root lay beyond their face's trim (see _drop_off_trim)
     off_trim_end_points: int = 0  # points next to a corner beyond their face's trim, dropped
     merged_crossings: int = 0  # crossings at the same point as their loop neighbour (_merge_coincident)
@@ -158,6 +160,7 @@ class SampledShare:
     plane: np.ndarray  # (n,)
     stats: SamplingStats
     gaps: list[tuple]
+    unresolved: list[tuple[int, float]]
     corner_vids: set[int]
     gap_vids: set[int]
     node_vid: dict[int, int]
@@ -179,6 +182,7 @@ class RingSampler(RunRefiner):
         halving: bool = False,
         gap_ends: bool = True,
         exact_trim: bool = False,
+        keep_unresolved: bool = False,
     ):
         self.mesh, self.topo, self.pool = mesh, topo, pool
         self.seg_len = segment_length
@@ -198,6 +202,12 @@ class RingSampler(RunRefiner):
         # segment across it strays from it by more than the chord (``RunRefiner._drop_off_trim_ends``):
         # the report's reference, which must lie on the B-rep
         self.exact_trim = exact_trim
+        # ``keep_unresolved``: a segment still over budget after the refinement's last round (a
+        # file's corner micrometres off its face's curve, where every new point lands at the same
+        # place) is kept between the points it has and recorded, (plane, length), in ``unresolved``,
+        # instead of failing the sampling: the report's reference, which says so in its warnings
+        self.keep_unresolved = keep_unresolved
+        self.unresolved: list[tuple[int, float]] = []
         self.trace_reach = max(EXCURSION_MAX_TRACE_MM, 100.0 * segment_length)  # a trace's longest
         # a pinned loop's crossings are kept (the kept triangles use them): False where only the
         # loops are wanted (the deviation report's reference), so that a stretch of them in the
@@ -251,6 +261,7 @@ class RingSampler(RunRefiner):
             halving=self.halving,
             gap_ends=self.gap_ends,
             exact_trim=self.exact_trim,
+            keep_unresolved=self.keep_unresolved,
         )
         rings = other.free_loops(loop_ids)
         return SampledShare(
@@ -259,6 +270,7 @@ class RingSampler(RunRefiner):
             plane=other.pool.plane.copy(),
             stats=other.stats,
             gaps=other._gaps,
+            unresolved=other.unresolved,
             corner_vids=other.corner_vids,
             gap_vids=other.gap_vids,
             node_vid=other.node_vid,
@@ -284,6 +296,7 @@ class RingSampler(RunRefiner):
         self.corner_vids.update(vid[list(share.corner_vids)].tolist())
         self.gap_vids.update(vid[list(share.gap_vids)].tolist())
         self._gaps.extend(share.gaps)
+        self.unresolved.extend(share.unresolved)
         self.stats.add(share.stats)
         return {li: vid[ring].tolist() for li, ring in share.rings.items()}
 

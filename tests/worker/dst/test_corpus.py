@@ -28,7 +28,8 @@ from worker.dst.errors import DstError
 from worker.dst.params import ROTATION_FIELDS, SliceParams
 from worker.dst.pipeline import bbox_diagonal, slice_step, topo_deflection
 from worker.dst.reference import closed_length, exact_sections
-from worker.dst.report import build_report
+from worker.dst.report import _exact_reference, build_report
+from worker.dst.report_warnings import unresolved_reference_warning
 from worker.dst.sampling import RingSampler
 
 pytestmark = pytest.mark.corpus
@@ -589,6 +590,27 @@ def test_ring_points_off_the_trim_stay_where_the_chord_across_them_would_stray()
 
 
 @pytest.mark.slow
+def test_report_reference_keeps_a_segment_it_cannot_resolve_and_says_where():
+    """trj7_b1-ec-214 (edge tolerances up to 0.3 mm) turned to (-33.7, -98.1, 159.6), z = 14.1: a
+    corner lies 2.6 um off its face's curve, and every point the reference's refinement solved
+    between them landed at the curve's end, 2.6 um from the corner. After its last round that
+    segment still failed its check at the reference's 0.001 mm, and the whole report failed
+    ("section curves cannot meet the chord budget"), leaving a job with its mesh and no report.
+    The reference keeps such a segment between its exact ends and records its plane and length
+    (``ExactSections.unresolved``), which the report's warnings name."""
+    path, params = _turned("freeform/trj7_b1-ec-214.stp", (-33.7, -98.1, 159.6))
+    mesh = slice_step(path, params)  # (the part as the build repairs it: BRepMesh hangs on one face)
+    (j,) = np.flatnonzero(np.isclose(mesh.planes.z, 14.1))
+    ref = _exact_reference(mesh.part, params, heights=mesh.planes.section_z[j - 1 : j + 2]).sections
+    assert all(ref.loops), "a plane without its section"
+    count, longest = ref.unresolved[1]
+    assert set(ref.unresolved) == {1}, ref.unresolved
+    assert count >= 1 and 0.001 < longest < 0.01, ref.unresolved[1]
+    note = unresolved_reference_warning(ref.unresolved, mesh.planes.z[j - 1 : j + 2], ref.chord)
+    assert note is not None and "z = 14.1000 mm" in note, note
+
+
+@pytest.mark.slow
 def test_quarter_points_the_seed_path_puts_past_their_segment_are_solved_from_its_chord():
     """trj6_k1-al-214 turned to (112.9, 27.5, -64.7), z = 44.5: round a loop 0.5 mm across, the seed
     path put both quarter points of a 0.167 mm segment past its ends, and its midpoint, 0.024 mm
@@ -613,6 +635,25 @@ def test_a_segment_across_a_sharp_tip_is_traced_not_kept_as_a_gap():
     mesh = slice_step(path, params)
     assert mesh.stats["tolerance_gaps"] == 0
     _assert_planes_within_budget(mesh, 14.7, 24.1, 101.3)
+
+
+@pytest.mark.slow
+def test_a_point_newton_put_past_a_pole_of_its_face_is_solved_on_the_face():
+    """bug27453_165-174_piattello turned to (89.5, 112.2, -78.9), z = 86.5: the plane passes 2 um
+    below the apex of a cap of revolution, whose (u, v) box ends at the pole there. Newton put a
+    ring point through the pole, 2 um past the box, 3 um from the tip of the section; dropped as
+    off the face, it left a 0.25 mm segment 0.036 mm from the tip. It is solved again from its
+    parameters mirrored through the pole (``_through_pole``): the point lies on the B-rep, and every
+    exact point of the plane is within the budget of the ring."""
+    path, params = _turned("mechanical/bug27453_165-174_piattello.stp", (89.5, 112.2, -78.9))
+    mesh = slice_step(path, params)
+    assert mesh.stats["pole_points"] > 0
+    _assert_planes_within_budget(mesh, 86.5)
+    (j,) = np.flatnonzero(np.isclose(mesh.planes.z, 86.5))
+    ring = mesh.vertices[mesh.vertex_plane == j] + [0.0, 0.0, mesh.z_offset]
+    tip = ring[np.linalg.norm(ring[:, :2] - [-77.7955, -4.1972], axis=1) < 0.01]
+    assert len(tip) >= 1
+    assert distance_to_faces(tip, mesh.part.solids).max() < 1e-6
 
 
 @pytest.mark.slow

@@ -128,6 +128,7 @@ def test_adopt_keeps_this_samplers_vertex_of_a_node_both_placed(hemisphere_step,
         plane=np.array([topo.node_plane[node], 5, 5]),
         stats=SamplingStats(newton_solves=3),
         gaps=[gap],
+        unresolved=[(5, 0.003)],
         corner_vids={1},
         gap_vids={2},
         node_vid={node: 0},
@@ -142,6 +143,7 @@ def test_adopt_keeps_this_samplers_vertex_of_a_node_both_placed(hemisphere_step,
     assert main.node_vid[node] == own
     assert before in main.corner_vids and before + 1 in main.gap_vids
     assert main._gaps == [gap] and main.stats.newton_solves == 3
+    assert main.unresolved == [(5, 0.003)]
 
 
 def test_a_job_asked_to_run_in_one_process_samples_both_shares_here(hemisphere_step, monkeypatch, sampled_in):
