@@ -231,9 +231,18 @@ def _edge_node_optimum(mesh: TopoMesh, node: int, sign: float) -> np.ndarray | N
         ev = mesh.edges[ei]
         s_n = ev.parameter_of(tuple(mesh.xyz[node]))
         lo, hi = sorted(ev.parameter_of(tuple(mesh.xyz[n])) for n in nbrs)
-        if not lo < s_n < hi:
-            continue  # the neighbours straddle a closed edge's seam
-        pt = np.array(ev.point(ev.height_extreme(lo, hi, sign)))
-        if best is None or sign * pt[2] < sign * best[2]:
-            best = pt
+        if lo < s_n < hi:
+            spans = [(lo, hi)]
+        elif ev.closed:
+            # the node is a closed edge's seam vertex, its neighbours either side of it: the spans
+            # from each neighbour to the seam (the lowest point of a tilted circle can lie next to
+            # its vertex: eight_cyl turned (-147.4, -67.2, -169.1), a solid's lowest point 7 um
+            # below that node, and the plane between them lost its sliver of the section)
+            spans = [(ev.s0, lo), (hi, ev.s1)]
+        else:
+            continue
+        for a, b in spans:
+            pt = np.array(ev.point(ev.height_extreme(a, b, sign)))
+            if best is None or sign * pt[2] < sign * best[2]:
+                best = pt
     return best

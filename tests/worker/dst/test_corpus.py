@@ -657,6 +657,20 @@ def test_a_point_newton_put_past_a_pole_of_its_face_is_solved_on_the_face():
 
 
 @pytest.mark.slow
+def test_a_solids_lowest_point_beside_its_rims_seam_vertex_gets_the_plane_above_it():
+    """eight_cyl turned to (-147.4, -67.2, -169.1), z = 506.1: one solid of the assembly has its
+    lowest point on a closed circular rim, 5.5 um below the plane and 7 um below the rim's lowest
+    mesh node, which is the rim's seam vertex. The search for the rim's extreme between that node's
+    neighbours skipped it (they straddle the seam), so the node was not snapped onto the exact
+    lowest point, and the plane's 1.1 mm sliver of the section was missing from the DST mesh (the
+    report's reference, from a finer topology mesh, had it). The two spans either side of the seam
+    are searched: the sliver is there, within the budget of every exact point."""
+    path, params = _turned("assembly/eight_cyl.stp", (-147.4, -67.2, -169.1))
+    mesh = slice_step(path, params)
+    _assert_planes_within_budget(mesh, 506.1)
+
+
+@pytest.mark.slow
 def test_a_segment_round_a_deep_bend_is_split_whatever_its_samples_say():
     """Ventilator turned to (-135.2, -164.2, -177.2), first plane (z = 0.1): a 0.117 mm ring segment
     round a ~0.035 mm bend was sampled at 0.022 mm at its midpoint, one of its quarter points landed
