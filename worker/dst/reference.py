@@ -66,9 +66,9 @@ class ExactSections:
     zmin, zmax : the part's exact lowest and highest z in its own coordinates, mm
     chord : largest distance between the exact curve and the polylines, mm
     method : how the points were computed (for the report)
-    unresolved : per plane where the sampling left segments over ``chord`` after its last round
-        (``RingSampler.keep_unresolved``), (how many, the longest in mm): between their exact ends
-        the reference is a straight segment there
+    unresolved : (plane, length in mm) of each segment the sampling left over ``chord`` after its
+        last round (``RingSampler.keep_unresolved``): between its exact ends the reference is
+        straight there
     """
 
     heights: np.ndarray
@@ -81,7 +81,7 @@ class ExactSections:
     flat_planes: list[int]
     below_loops: dict[int, list[np.ndarray]]
     below_corners: dict[int, list[np.ndarray]]
-    unresolved: dict[int, tuple[int, float]] = field(default_factory=dict)
+    unresolved: list[tuple[int, float]] = field(default_factory=list)
 
     def perimeters(self) -> np.ndarray:
         return np.array([sum(closed_length(p) for p in ls) for ls in self.loops])
@@ -125,11 +125,7 @@ def exact_sections(
     pairs_below = {j: [p for on, below, _, _ in per_solid for p in below.get(j, on[j])] for j in flat}
     pairs = [[p for on, _, _, _ in per_solid for p in on[j]] for j in range(n_planes)]
     offsets = [off for *_, off in per_solid if off is not None]
-    unresolved: dict[int, tuple[int, float]] = {}
-    for _, _, short, _ in per_solid:
-        for j, (n, longest) in short.items():
-            n0, longest0 = unresolved.get(j, (0, 0.0))
-            unresolved[j] = (n0 + n, max(longest0, longest))
+    unresolved = [s for _, _, short, _ in per_solid for s in short]
     return ExactSections(
         heights=np.asarray(heights, dtype=np.float64),
         loops=[[lp for lp, _ in ps] for ps in pairs],
@@ -157,14 +153,14 @@ def exact_sections(
 
 def _sections_in_runs(
     mesh, world: np.ndarray, noise: np.ndarray, chord: float, segment_length: float, helper: bool = True
-) -> tuple[list[list[Pair]], dict[int, list[Pair]], dict[int, tuple[int, float]], float | None]:
+) -> tuple[list[list[Pair]], dict[int, list[Pair]], list[tuple[int, float]], float | None]:
     """``_solid_sections`` of runs of consecutive planes, each cut on its own when all of them at once
     would cross the topology mesh's triangles more than ``MAX_SECTION_PAIRS`` times (the cut's memory
     limit, which the DST build's coarser topology mesh may keep under while this finer one does not):
     the same sections, in the memory of one run's cut at a time."""
     on: list[list[Pair]] = []
     below: dict[int, list[Pair]] = {}
-    unresolved: dict[int, tuple[int, float]] = {}
+    unresolved: list[tuple[int, float]] = []
     offsets = []
     for j0, j1 in _plane_runs(section_pairs_per_plane(mesh, world), C.MAX_SECTION_PAIRS):
         part_on, part_below, part_unresolved, offset = _solid_sections(
@@ -172,7 +168,7 @@ def _sections_in_runs(
         )
         on.extend(part_on)
         below.update({j0 + j: pairs for j, pairs in part_below.items()})
-        unresolved.update({j0 + j: short for j, short in part_unresolved.items()})
+        unresolved += [(j0 + j, length) for j, length in part_unresolved]
         offsets += [] if offset is None else [offset]
     return on, below, unresolved, max(offsets, default=None)
 
@@ -191,10 +187,10 @@ def _plane_runs(pairs: np.ndarray, limit: int) -> list[tuple[int, int]]:
 
 def _solid_sections(
     mesh, world: np.ndarray, noise: np.ndarray, chord: float, segment_length: float, helper: bool = True
-) -> tuple[list[list[Pair]], dict[int, list[Pair]], dict[int, tuple[int, float]], float | None]:
+) -> tuple[list[list[Pair]], dict[int, list[Pair]], list[tuple[int, float]], float | None]:
     """One solid's dense sections: (loop, corner mask) pairs per plane, and per plane through a flat
     face of the solid, the pairs just below the face (the per-plane ones are then just above it);
-    the segments not resolved to the chord, per plane (``_sample``); and the offset from the face
+    the segments not resolved to the chord, as (plane, length) (``_sample``); and the offset from the face
     the sections at a flat face were taken at (None without a flat face)."""
     topo = cut_topology(mesh, world, on_plane_tol=C.ON_PLANE_TOL_MM, noise_tol=noise)
     if not topo.flat_planes:
@@ -230,7 +226,7 @@ def _solid_sections(
         )
         # segments left unresolved at one offset may not be at the next, as one that fails there
         if unresolved and offset != FLAT_FACE_OFFSETS_MM[-1]:
-            raise TessellationError(f"{len(unresolved)} planes with unresolved segments")
+            raise TessellationError(f"{len(unresolved)} unresolved segments")
         return on, below, unresolved, offset
 
     return _first_that_works(at, FLAT_FACE_OFFSETS_MM)
@@ -249,8 +245,8 @@ def _first_that_works(fn: Callable[[float], T], values: tuple[float, ...]) -> T:
 
 def _sample(mesh, topo, owner, lowered, flat, chord, segment_length, helper=True):
     """The dense loops of a cut, as (loop, corner mask) pairs per plane ``owner[e]`` of each cut
-    plane ``e``, the ``lowered`` ones apart per flat plane; and per plane ``owner[e]``, the segments
-    its samplers left unresolved (``RingSampler.keep_unresolved``) as (how many, the longest).
+    plane ``e``, the ``lowered`` ones apart per flat plane; and the segments its samplers left
+    unresolved (``RingSampler.keep_unresolved``), as (plane ``owner[e]``, length).
 
     The sampling (most of the reference's work after its topology mesh) is done in shares of the
     cut's planes (``_plane_shares``), each by a sampler of its own, one after the other; with
@@ -281,16 +277,7 @@ def _sample(mesh, topo, owner, lowered, flat, chord, segment_length, helper=True
     for li in sorted(sampled):
         e = int(topo.loops[li][0])
         (below[int(owner[e])] if lowered[e] else on_plane[int(owner[e])]).append(sampled[li])
-    return on_plane, below, _by_plane((int(owner[e]), length) for e, length in unresolved)
-
-
-def _by_plane(segments) -> dict[int, tuple[int, float]]:
-    """Segments (plane, length) as plane -> (how many, the longest)."""
-    out: dict[int, tuple[int, float]] = {}
-    for j, length in segments:
-        n, longest = out.get(j, (0, 0.0))
-        out[j] = (n + 1, max(longest, length))
-    return out
+    return on_plane, below, [(int(owner[e]), length) for e, length in unresolved]
 
 
 def _sample_shares(

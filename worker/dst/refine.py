@@ -663,13 +663,13 @@ class RunRefiner:
             ):
                 continue
             run = runs[int(ri[k])]
-            box, chk = self._uv_box[run.face], self._box_checked[run.face]
-            tol = 1e-9 * np.maximum(box[[1, 3]] - box[[0, 2]], 1.0)
-            below, above = uv[k] < box[[0, 2]] - tol, uv[k] > box[[1, 3]] + tol
-            axes = np.flatnonzero((below | above) & chk)
+            below, above = self._beyond_face_box(np.array([run.face]), uv[k : k + 1])
+            below, above = below[0], above[0]
+            axes = np.flatnonzero(below | above)
             if len(axes) != 1:
                 continue
             axis = int(axes[0])
+            box = self._uv_box[run.face]
             bound = float(box[2 * axis] if below[axis] else box[2 * axis + 1])
             if not self._is_pole(run.face, axis, bound):
                 continue
@@ -719,11 +719,15 @@ class RunRefiner:
 
     def _off_face_box(self, face: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """Mask of points whose face parameters lie beyond their face's (u, v) box."""
+        below, above = self._beyond_face_box(face, uv)
+        return (below | above).any(axis=1)
+
+    def _beyond_face_box(self, face: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(k, 2) masks of points' u and v below and above their face's (u, v) box, where a point
+        beyond it in that parameter is certainly off the face (``FaceEval.bounded``)."""
         box, chk = self._uv_box[face], self._box_checked[face]
         tol = 1e-9 * np.maximum(box[:, [1, 3]] - box[:, [0, 2]], 1.0)
-        below = uv < box[:, [0, 2]] - tol
-        above = uv > box[:, [1, 3]] + tol
-        return ((below | above) & chk).any(axis=1)
+        return (uv < box[:, [0, 2]] - tol) & chk, (uv > box[:, [1, 3]] + tol) & chk
 
     def _end_tangents(
         self, runs: list[_Run], end: np.ndarray, offsets: bool = False

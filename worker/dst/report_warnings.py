@@ -232,21 +232,20 @@ def reference_fault_warning(
 
 
 def unresolved_reference_warning(
-    unresolved: dict[int, tuple[int, float]], planes_z: np.ndarray, resolution: float
+    unresolved: list[tuple[int, float]], planes_z: np.ndarray, resolution: float
 ) -> str | None:
     """The warning for an exact reference whose sampling left segments over its resolution after
-    its last round (``ExactSections.unresolved``: plane -> (how many, the longest)), rather than
-    failing the report: trj7_b1-ec-214 turned (-33.7, -98.1, 159.6), a corner 2.6 um off its face's
-    curve (edge tolerances up to 0.3 mm), where every point solved between them landed at the curve."""
+    its last round (``ExactSections.unresolved``: (plane, length) each), rather than failing the
+    report: trj7_b1-ec-214 turned (-33.7, -98.1, 159.6), a corner 2.6 um off its face's curve
+    (edge tolerances up to 0.3 mm), where every point solved between them landed at the curve."""
     if not unresolved:
         return None
-    planes = sorted(unresolved)
-    j = max(planes, key=lambda k: unresolved[k][1])
-    n = sum(count for count, _ in unresolved.values())
+    planes = sorted({j for j, _ in unresolved})
+    j, longest = max(unresolved, key=lambda s: s[1])
     return (
-        f"the exact reference could not be refined to its {resolution:g} mm resolution everywhere: {n} "
-        f"segment(s) at {len(planes)} plane(s) ({', '.join(map(str, planes[:10]))}"
-        f"{', ...' if len(planes) > 10 else ''}; the longest, {unresolved[j][1]:.3g} mm, at z = "
+        f"the exact reference could not be refined to its {resolution:g} mm resolution everywhere: "
+        f"{len(unresolved)} segment(s) at {len(planes)} plane(s) ({', '.join(map(str, planes[:10]))}"
+        f"{', ...' if len(planes) > 10 else ''}; the longest, {longest:.3g} mm, at z = "
         f"{planes_z[j]:.4f} mm) still failed its check after the last round (where faces and edges "
         "disagree, a corner off its face's curve by the file's tolerance). There the reference joins "
         "two exact points by a straight segment without following the curve between them, and each "

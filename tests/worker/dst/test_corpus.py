@@ -603,9 +603,9 @@ def test_report_reference_keeps_a_segment_it_cannot_resolve_and_says_where():
     (j,) = np.flatnonzero(np.isclose(mesh.planes.z, 14.1))
     ref = _exact_reference(mesh.part, params, heights=mesh.planes.section_z[j - 1 : j + 2]).sections
     assert all(ref.loops), "a plane without its section"
-    count, longest = ref.unresolved[1]
-    assert set(ref.unresolved) == {1}, ref.unresolved
-    assert count >= 1 and 0.001 < longest < 0.01, ref.unresolved[1]
+    longest = max(length for _, length in ref.unresolved)
+    assert {j for j, _ in ref.unresolved} == {1}, ref.unresolved
+    assert len(ref.unresolved) >= 1 and 0.001 < longest < 0.01, ref.unresolved
     note = unresolved_reference_warning(ref.unresolved, mesh.planes.z[j - 1 : j + 2], ref.chord)
     assert note is not None and "z = 14.1000 mm" in note, note
 
