@@ -57,6 +57,9 @@ GAP_SPAN_REL = 1e-6  # a seed interval this small (relative to its run) cannot h
 # A segment's midpoint (placed by arc length along the seed path) this close to either end, relative
 # to the segment, is off the path: solved again from the chord's middle (``_midpoints_off_the_path``)
 MID_OFF_PATH = 0.1
+# A segment whose midpoint and quarter points leave more of its chord than this share unseen between
+# them (or its ends) is sampled in the middle of that gap too (``_gap_sags``)
+MAX_SAMPLE_GAP = 0.5
 TRIM_TOL_MM = 1e-6
 POLE_TOL_MM = 1e-7  # an iso-line this short is a pole of its face's parametrisation
 # C0 lines of a face this close to its (u, v) box's sides are its edges' business (relative to the box)
@@ -980,9 +983,59 @@ class RunRefiner:
         np.maximum.at(sag, q, q_sag)
         sag[ci] = np.maximum(sag[ci], peak)
         self.stats.quarter_checks += n
+        self._gap_sags(on, sag, ci, t, t_q, q_sag, ok, length, pa, pb)
         quarters[ci, 0], quarters[ci, 1] = pts[:n], pts[n:]
         q_ok[ci, 0], q_ok[ci, 1] = on_path[:n], on_path[n:]
         return quarters, q_ok
+
+    def _gap_sags(self, on, sag, ci, t, t_q, q_sag, ok, length, pa, pb) -> None:
+        """Raise ``sag`` (in place) where the samples of segments ``ci`` (the midpoint at chord
+        position ``t``, the quarter points at ``t_q`` with distances ``q_sag`` where ``ok``; laid
+        out as ``_quarter_sags`` has them) leave more than ``MAX_SAMPLE_GAP`` of the chord unseen:
+        the curve's point in the middle of that gap, solved from the chord (``_solve_from_chord``),
+        and the peak of the parabola through it and the samples (or chord ends) either side.
+
+        Where the seed path and the curve part ways the path's arc length maps unevenly onto the
+        curve: bug29241 turned (26.5, -17.6, -116.2) at z = 321.3 had a 0.276 mm segment round a
+        bend of a cone's section sampled at t = 0.035, 0.893 and 0.929 (0.010 mm at most), its curve
+        0.028 mm from the chord at t = 0.5. A point farther from the chord than half its length is
+        on another piece of the section (no arc between the ends goes there) and is not used."""
+        n = len(ci)
+        nan = np.full(n, np.nan)
+        ts = np.stack(
+            [np.zeros(n), np.where(ok[:n], t_q[:n], nan), t[ci], np.where(ok[n:], t_q[n:], nan), np.ones(n)],
+            axis=1,
+        )
+        fs = np.stack([np.zeros(n), q_sag[:n], sag[ci], q_sag[n:], np.zeros(n)], axis=1)
+        ts = np.clip(ts, 0.0, 1.0)
+        order = np.argsort(np.where(np.isnan(ts), np.inf, ts), axis=1)
+        ts, fs = np.take_along_axis(ts, order, axis=1), np.take_along_axis(fs, order, axis=1)
+        filled = np.where(np.isnan(ts), 1.0, ts)  # (the lost samples sort last, onto the chord's end)
+        gaps = np.diff(filled, axis=1)
+        g = np.argmax(gaps, axis=1)
+        rows = np.flatnonzero((gaps[np.arange(n), g] > MAX_SAMPLE_GAP) & (length[ci] > self.chord))
+        if not len(rows):
+            return
+        seg, g = ci[rows], g[rows]
+        t_lo, t_hi = filled[rows, g], filled[rows, g + 1]
+        t_new = 0.5 * (t_lo + t_hi)
+        face, zc, step = (a[seg] for a in on)
+        guess = pa[seg] + t_new[:, None] * (pb[seg] - pa[seg])
+        p, found, _ = self._solve_from_chord(face, zc, step, guess, pa[seg], pb[seg])
+        p = np.nan_to_num(p)
+        d = point_segment_distance(p, pa[seg], pb[seg])
+        found &= d <= 0.5 * length[seg]
+        self.stats.gap_samples += len(rows)
+        if not found.any():
+            return
+        rows, seg, g, p, d = rows[found], seg[found], g[found], p[found], d[found]
+        t_p = _chord_position(p, pa[seg], pb[seg])
+        peak = _parabola_peak(
+            np.stack([filled[rows, g], t_p, filled[rows, g + 1]], axis=1),
+            np.stack([fs[rows, g], d, fs[rows, g + 1]], axis=1),
+            np.ones(len(rows), dtype=bool),
+        )
+        sag[seg] = np.maximum(sag[seg], np.maximum(d, peak))
 
     def _halves(self, pending, over, mid, mid_s, quarters, q_ok) -> tuple[np.ndarray, tuple]:
         """Segments ``over`` of ``pending`` (within the ``halving`` budget, beyond the chord) kept as

@@ -127,6 +127,7 @@ class SamplingStats:
     deep_bends: int = 0  # segments split for turning through more than ~67 degrees (DEEP_BEND_REL)
     quarter_checks: int = 0  # segments also checked at their quarter points (see _quarter_sags)
     quarter_resolves: int = 0  # quarter points the seed path put past their segment, solved from its chord
+    gap_samples: int = 0  # segments whose samples left much of their chord unseen, sampled in the gap
     halved_segments: int = 0  # segments kept as their two halves (see RingSampler._halves)
     inflection_checks: int = 0  # segments checked again for an inflection inside (_inflected_segments)
     end_bend_checks: int = 0  # run end segments checked again for a bend at their corner (END_BEND_FACTOR)

@@ -699,6 +699,20 @@ def test_a_segment_whose_quarter_point_is_lost_round_a_tight_bend_is_estimated_f
 
 
 @pytest.mark.slow
+def test_a_segment_whose_samples_bunch_at_its_ends_is_sampled_in_between():
+    """bug29241 turned to (26.5, -17.6, -116.2), z = 321.3 (1.8 mm layers put a plane there too, at a
+    ninth of the build): a 0.276 mm ring segment round a bend of a cone's section had its midpoint,
+    placed along the seed path, at t = 0.893 of its chord and its quarter points at 0.035 and 0.929
+    (at most 0.010 mm from it), and passed while the curve lay 0.028 mm from it at t = 0.5 (budget
+    0.025). A segment whose samples leave more than half its chord unseen is now sampled in the
+    middle of that gap (``_gap_sags``): every exact point of the plane is within the budget."""
+    path, params = _turned("mechanical/bug29241.stp", (26.5, -17.6, -116.2))
+    mesh = slice_step(path, params.model_copy(update={"layer_height": 1.8}))
+    assert mesh.stats["gap_samples"] >= 1
+    _assert_planes_within_budget(mesh, 321.3)
+
+
+@pytest.mark.slow
 def test_report_reference_keeps_a_tongue_tip_its_trace_between_suspects_would_lose():
     """boxed_sphere turned to (-11.5, -70.9, -79.8): at four planes the reference (sampled to 1 um,
     where the DST build's 25 um accepts longer segments) passed a tongue's tip several times over
