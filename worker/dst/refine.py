@@ -605,10 +605,13 @@ class RunRefiner:
             return
         run, end, a, b = run[far], end[far], order[a[far]], order[b[far]]
         segment = np.linalg.norm(xyz[b, :2] - xyz[a, :2], axis=1)
-        g_xyz, g_ok, g_uv = self._gap_end_points(runs, run, end, foot_uv[far], off[far], 0.5 * segment)
+        inner = np.where(end == 0, b, a)  # (the end segment's other point)
+        g_xyz, g_ok, g_uv = self._gap_end_points(
+            runs, run, end, foot_uv[far], off[far], 0.5 * segment, xyz[inner]
+        )
         if not g_ok.any():
             return
-        run, end, inner = run[g_ok], end[g_ok], np.where(end == 0, b, a)[g_ok]  # (the segment's other point)
+        run, end, inner = run[g_ok], end[g_ok], inner[g_ok]
         tangents[run, end] = np.nan
         # next to the end in s (a segment between the two is a gap if it is ever found over budget)
         at = np.where(end == 0, 0.0, lengths[run])
@@ -809,15 +812,20 @@ class RunRefiner:
         uv: np.ndarray,
         off: np.ndarray,
         reach: np.ndarray,
+        inner: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The section curve's point nearest each run end vertex that lies off its face's curve
         (``off``: its estimated distance, ``uv``: its foot on the face), by Newton onto the run's
         plane from the foot: (k, 3) points, (k,) mask of those found, (k, 2) their (u, v). Found:
         converged within 2 ``off`` + the chord of the vertex and within ``reach`` (half its end
         segment: a point farther along would not come next to the vertex), and inside the face's
-        trim (the face's curve may run on the surface's extension past the edge instead:
-        bug24595_281390 turned (-119.7, -47.5, -168.3) at z = 43.5, a corner 0.033 mm from face 0's
-        curve, which there lies 0.030 mm beyond the face; no point is added)."""
+        trim. Where the face's curve runs on the surface's extension past the edge there instead
+        (bug24595_281390 turned (-119.7, -47.5, -168.3) at z = 43.5, a corner 0.033 mm from face 0's
+        curve, which there lies 0.030 mm beyond the face), the point where the curve enters the trim
+        on its way to the end segment's other point ``inner`` (``_into_trim``), within the same
+        reach: bug24595_281390 turned (14.5, -140.6, 37.4) at z = 103.1 had a corner 0.030 mm from
+        face 15's curve, whose nearest point lay beyond the trim, and the 0.78 mm segment from the
+        corner passed 0.028 mm from the curve where it entered the face 0.011 mm further on."""
         face = np.array([runs[r].face for r in run.tolist()])
         zc = np.array([runs[r].zc for r in run.tolist()])
         step = np.array([runs[r].max_step for r in run.tolist()])
@@ -825,13 +833,43 @@ class RunRefiner:
         vid = np.array(
             [runs[r].end if w else runs[r].start for r, w in zip(run.tolist(), end.tolist(), strict=True)]
         )
+        near = np.minimum(2.0 * np.where(np.isfinite(off), off, 0.0) + self.chord, reach)
         dist = np.linalg.norm(np.nan_to_num(xyz[:, :2]) - self.pool.xyz[vid, :2], axis=1)
-        ok &= (dist <= 2.0 * np.where(np.isfinite(off), off, 0.0) + self.chord) & (dist <= reach)
+        ok &= dist <= near
         for i in np.flatnonzero(ok).tolist():
-            ok[i] = self.mesh.faces[face[i]].contains(
-                float(out_uv[i, 0]), float(out_uv[i, 1]), tol=TRIM_TOL_MM
-            )
+            if self.mesh.faces[face[i]].contains(float(out_uv[i, 0]), float(out_uv[i, 1]), tol=TRIM_TOL_MM):
+                continue
+            ok[i] = False
+            entry = self._into_trim(int(face[i]), float(zc[i]), float(step[i]), xyz[i], inner[i])
+            if entry is not None and np.linalg.norm(entry[0][:2] - self.pool.xyz[vid[i], :2]) <= near[i]:
+                xyz[i], out_uv[i], ok[i] = entry[0], entry[1], True
+                self.stats.trim_entry_points += 1
         return xyz, ok, out_uv
+
+    def _into_trim(
+        self, f: int, zc: float, step: float, outside: np.ndarray, inside: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """The point (xyz, (u, v)) where face ``f``'s section curve at height ``zc`` enters the face's
+        trim between ``outside`` (a point of the curve beyond the trim) and ``inside`` (one inside
+        it): bisection along the chord between them, each point solved from the chord
+        (``_solve_from_chord``), down to TRIM_TOL_MM; the innermost point found inside, or None
+        where no point between them is found or inside."""
+        ev = self.mesh.faces[f]
+        span = float(np.linalg.norm(inside - outside))
+        lo, hi = 0.0, 1.0
+        best = None
+        one = (np.array([f]), np.array([zc]), np.array([step]))
+        while (hi - lo) * span > TRIM_TOL_MM:
+            mid = 0.5 * (lo + hi)
+            guess = outside + mid * (inside - outside)
+            p, ok, uv = self._solve_from_chord(*one, guess[None], outside[None], inside[None])
+            if not ok[0]:
+                return best
+            if ev.contains(float(uv[0, 0]), float(uv[0, 1]), tol=TRIM_TOL_MM):
+                hi, best = mid, (p[0], uv[0])
+            else:
+                lo = mid
+        return best
 
     def _midpoints_off_the_path(
         self, face, zc, step, mid, mid_ok, pa, pb, length, traced, mid_uv
@@ -1134,7 +1172,12 @@ class RunRefiner:
         11.1). But where the build's topology mesh gives the run the wrong face next to a corner (a
         narrow face it missed), its points on the wrong surface's extension are nearer the B-rep's
         curve than the chord across them (boxed_sphere turned (-85.5, 94.7, -31.9) at z = 0.3: 0.03
-        mm off the B-rep, the chord 0.085 mm off): the build keeps them there."""
+        mm off the B-rep, the chord 0.085 mm off): the build keeps them there.
+
+        Where points are dropped, the one next to the first point inside moves to where the curve
+        enters the trim between the two (``_into_trim``): the ring and the reference both join the
+        corner to the face's curve at the face's boundary, a point of the B-rep, not to whichever
+        of their samples came first inside it (0.003 mm apart on bug24595_281390 at z = 2.9)."""
         bounds = np.searchsorted(ri, np.arange(len(runs) + 1)).tolist()
         corners = self.corner_vids
         for i, r in enumerate(runs):
@@ -1147,6 +1190,7 @@ class RunRefiner:
                 if end not in corners:
                     continue
                 dropped = []
+                inside = None
                 for k in walk:
                     if vid[k] == -2:
                         continue
@@ -1156,10 +1200,20 @@ class RunRefiner:
                             ends = (np.broadcast_to(xyz[at], pts.shape), np.broadcast_to(xyz[k], pts.shape))
                             if point_segment_distance(pts, *ends).max() > self.chord:
                                 dropped = []
+                        inside = k
                         break
                     dropped.append(k)
-                vid[dropped] = -2
                 self.stats.off_trim_end_points += len(dropped)
+                if dropped and inside is not None:
+                    # the dropped point next to the first one inside moves to where the curve enters
+                    # the trim between them: the corner joins the face's curve at the trim
+                    last = dropped[-1]
+                    entry = self._into_trim(r.face, r.zc, r.max_step, xyz[last], xyz[inside])
+                    if entry is not None:
+                        xyz[last], uv[last] = entry
+                        dropped.pop()
+                        self.stats.trim_entry_points += 1
+                vid[dropped] = -2
 
     def _inside_face(self, run: _Run, uv: np.ndarray) -> bool:
         """Is a point solved on the run's surface (at these face parameters) inside the face's trimmed

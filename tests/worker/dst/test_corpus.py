@@ -538,6 +538,19 @@ def test_a_corner_off_its_faces_curve_is_joined_to_the_curve_where_it_comes_near
     _assert_planes_within_budget(mesh, 95.7)
 
 
+def test_a_corner_whose_faces_curve_comes_nearest_beyond_the_trim_joins_it_at_the_trim():
+    """bug24595_281390 turned to (14.5, -140.6, 37.4), z = 103.1: a corner lies 0.030 mm from face
+    15's section curve, whose point nearest it lies beyond the face's trim, and the 0.78 mm ring
+    segment from the corner passed its checks while the curve lay 0.028 mm from it where it entered
+    the face, 0.011 mm further on (budget 0.025). The point where the curve enters the trim is now
+    added next to the corner (``stats['trim_entry_points']``): every exact point of the plane is
+    within the budget of the ring."""
+    path, params = _turned("freeform/bug24595_281390.stp", (14.5, -140.6, 37.4))
+    mesh = slice_step(path, params)
+    _assert_planes_within_budget(mesh, 103.1)
+    assert mesh.stats["trim_entry_points"] > 0
+
+
 @pytest.mark.slow
 def test_report_reference_has_no_points_beyond_a_faces_trim_next_to_a_corner():
     """bug24595_281390 turned to (-119.7, -47.5, -168.3), z = 43.5: at a corner, face 0's surface lies

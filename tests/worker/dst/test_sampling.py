@@ -729,3 +729,66 @@ def test_a_run_end_off_its_faces_curve_gets_the_curves_nearest_point_next_to_it(
     assert d.max() <= sampler.chord
     assert (np.linalg.norm(ring[:, :2] - foot[:2], axis=1) < 1e-3).sum() == 1
     assert (np.linalg.norm(piled[:, :2] - foot[:2], axis=1) < 1e-3).sum() >= 10
+
+
+@pytest.fixture(scope="module")
+def half_cone_sampler(tmp_path_factory):
+    """The conftest cone cut to its half y >= 0: the cone face's trim ends at the plane y = 0."""
+    import build123d as bd
+
+    from tests.conftest import build_part, write_step
+
+    half = build_part("cone", radius=RADIUS, height=HEIGHT) & bd.Box(
+        30, 30, 30, align=(bd.Align.CENTER, bd.Align.MIN, bd.Align.MIN)
+    )
+    path = write_step(half, tmp_path_factory.mktemp("hc") / "half_cone.step", nurbs=False)
+    mesh = _topomesh_of(path)
+    topo = cut_topology(mesh, np.array([Z]), on_plane_tol=C.ON_PLANE_TOL_MM, noise_tol=np.zeros(1))
+    return mesh, topo, [f.ad.GetType() for f in mesh.faces].index(GeomAbs_Cone)
+
+
+@pytest.mark.parametrize("reference", [False, True])
+def test_a_corner_whose_faces_curve_runs_on_past_the_trim_joins_it_where_it_enters_the_trim(
+    half_cone_sampler, reference
+):
+    """A corner next to which its face's section curve runs on past the face's trim (the face's
+    surface and its boundary edge apart within a file's tolerance): the half cone's circle of radius
+    7.5 at z = 5 leaves the face at y = 0. The build's ring (a corner 0.02 mm off the circle, 0.005
+    rad past its end, at a 0.025 mm budget: the curve's nearest point lies beyond the trim) and the report's reference (a
+    corner on the circle's extension 0.05 rad past its end: its samples there lie beyond the trim and
+    are dropped) both join the corner to the circle where it enters the trim, (7.5, 0, 5): a point
+    of the B-rep (``stats.trim_entry_points``), not their first sample inside the face."""
+    from worker.dst.refine import _Run
+
+    mesh, topo, cone = half_cone_sampler
+    if reference:
+        s = RingSampler(
+            mesh, topo, VertexPool(), segment_length=1.0, chord_error=0.001, gap_ends=False, exact_trim=True
+        )
+        a0, off = -0.05, 0.0
+    else:
+        s = RingSampler(mesh, topo, VertexPool(), segment_length=1.0, chord_error=0.025)
+        a0, off = -0.005, 0.02
+    a1 = 0.6
+    ev = mesh.faces[cone]
+    start = _on_circle(a0) * np.array([1.0 + off / R_Z, 1.0 + off / R_Z, 1.0])
+    uv = np.array([ev.uv_near(tuple(_on_circle(a)), (0.0, 0.0)) for a in np.linspace(a0, a1, 5)])
+    vids = [s.pool.add(tuple(start), 0), s.pool.add(tuple(_on_circle(a1)), 0)]
+    s.corner_vids.add(vids[0])
+    run = _Run(cone, R_Z * (np.linspace(a0, a1, 5) - a0), uv, 0.5, *vids, 4, Z, 0, gap_ends=not reference)
+    (ids,) = s._sample_runs([run])
+    ring = s.pool.xyz[ids]
+    assert ids[0] == vids[0] and ids[-1] == vids[1]
+    np.testing.assert_allclose(ring[1], [R_Z, 0.0, Z], atol=1e-5)
+    assert s.stats.trim_entry_points == 1
+    assert (ring[1:, 1] >= -1e-6).all()  # nothing beyond the trim but the corner
+    # the arc from the entry point on is within the budget of the ring
+    arc = np.array([_on_circle(a) for a in np.linspace(0.0, a1, 4001)])
+    d = np.min(
+        [
+            point_segment_distance(arc, np.broadcast_to(p, arc.shape), np.broadcast_to(q, arc.shape))
+            for p, q in zip(ring[1:-1], ring[2:], strict=True)
+        ],
+        axis=0,
+    )
+    assert d.max() <= s.chord + 1e-9
