@@ -19,6 +19,8 @@ from collections.abc import Sequence
 import numpy as np
 from OCP.BRep import BRep_Tool
 from OCP.BRepAdaptor import BRepAdaptor_Curve, BRepAdaptor_Surface
+from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeVertex
+from OCP.BRepExtrema import BRepExtrema_DistShapeShape
 from OCP.Extrema import Extrema_ExtPC
 from OCP.GeomAbs import GeomAbs_Sphere
 from OCP.gp import gp_Pnt, gp_Pnt2d, gp_Vec
@@ -203,6 +205,21 @@ class FaceEval:
         if fc is None:
             fc = self._fclass[tol] = IntTools_FClass2d(self.face, tol)
         return fc.Perform(gp_Pnt2d(u, v)) in (TopAbs_IN, TopAbs_ON)
+
+    def holds(self, xyz: tuple[float, float, float], tol: float) -> bool:
+        """True if the point lies within ``tol`` of the face (the surface inside its boundary, as
+        ``BRepExtrema`` measures it: near a loose file's edge, a point the (u, v) classifiers put
+        inside can lie off the face by up to the edge's tolerance)."""
+        vertex = BRepBuilderAPI_MakeVertex(gp_Pnt(*xyz)).Vertex()
+        return BRepExtrema_DistShapeShape(vertex, self.face).Value() <= tol
+
+    def strictly_contains(self, u: float, v: float, tol: float = 1e-9) -> bool:
+        """True if (u, v) is inside the trimmed face and not on its boundary: the classifier's ON
+        band follows the tolerances of the face's edges, as wide as a loose file's 0.03 mm."""
+        fc = self._fclass.get(tol)
+        if fc is None:
+            fc = self._fclass[tol] = IntTools_FClass2d(self.face, tol)
+        return fc.Perform(gp_Pnt2d(u, v)) == TopAbs_IN
 
     def root_on_uv_segment(
         self, ua: float, va: float, ub: float, vb: float, c: float

@@ -562,6 +562,7 @@ class RunRefiner:
                     if not self._inside_face(r, uv[k]):
                         vid[k] = -2
         self._drop_off_trim_ends(runs, ri, xyz, vid, uv)
+        ri, xyz, vid, uv = self._trim_borders(ri, xyz, vid, uv, run_face, run_z, run_step)
         keep = vid != -2
         dropped_before = np.cumsum(~keep)[keep]
         ri, xyz, vid = ri[keep], xyz[keep], vid[keep]
@@ -852,24 +853,40 @@ class RunRefiner:
         """The point (xyz, (u, v)) where face ``f``'s section curve at height ``zc`` enters the face's
         trim between ``outside`` (a point of the curve beyond the trim) and ``inside`` (one inside
         it): bisection along the chord between them, each point solved from the chord
-        (``_solve_from_chord``), down to TRIM_TOL_MM; the innermost point found inside, or None
-        where no point between them is found or inside."""
+        (``_solve_from_chord``), down to TRIM_TOL_MM; the outermost point found inside, or None
+        where no point between them is found inside.
+
+        Inside is strictly inside the (u, v) trim (the classifier counts as on the boundary a band
+        as wide as the edges' tolerances, whose outer side lies off the B-rep by as much: 0.011 mm
+        on bug24595_281390 turned (-119.7, -47.5, -168.3) at z = 43.5), and on the face as
+        ``BRepExtrema`` measures it: near a loose file's edge a point inside the (u, v) trim can
+        still lie off the face by up to the edge's tolerance (0.005 mm on trj4_k1_top-pe-214 at z =
+        1.5, edge tolerances of 0.006 mm). That second test is costly (~0.3 ms), so the bisection
+        runs on the first, and only where its point fails the second goes on inward with both."""
         ev = self.mesh.faces[f]
         span = float(np.linalg.norm(inside - outside))
-        lo, hi = 0.0, 1.0
-        best = None
         one = (np.array([f]), np.array([zc]), np.array([step]))
-        while (hi - lo) * span > TRIM_TOL_MM:
-            mid = 0.5 * (lo + hi)
-            guess = outside + mid * (inside - outside)
-            p, ok, uv = self._solve_from_chord(*one, guess[None], outside[None], inside[None])
-            if not ok[0]:
-                return best
-            if ev.contains(float(uv[0, 0]), float(uv[0, 1]), tol=TRIM_TOL_MM):
-                hi, best = mid, (p[0], uv[0])
-            else:
-                lo = mid
-        return best
+
+        def bisect(lo: float, hi: float, exact: bool) -> tuple[float, tuple[np.ndarray, np.ndarray] | None]:
+            best = None
+            while (hi - lo) * span > TRIM_TOL_MM:
+                mid = 0.5 * (lo + hi)
+                guess = outside + mid * (inside - outside)
+                p, ok, uv = self._solve_from_chord(*one, guess[None], outside[None], inside[None])
+                if not ok[0]:
+                    break
+                if ev.strictly_contains(float(uv[0, 0]), float(uv[0, 1]), tol=TRIM_TOL_MM) and (
+                    not exact or ev.holds(tuple(p[0]), TRIM_TOL_MM)
+                ):
+                    hi, best = mid, (p[0], uv[0])
+                else:
+                    lo = mid
+            return hi, best
+
+        at, best = bisect(0.0, 1.0, False)
+        if best is None or ev.holds(tuple(best[0]), TRIM_TOL_MM):
+            return best
+        return bisect(at, 1.0, True)[1]
 
     def _midpoints_off_the_path(
         self, face, zc, step, mid, mid_ok, pa, pb, length, traced, mid_uv
@@ -1214,6 +1231,56 @@ class RunRefiner:
                         dropped.pop()
                         self.stats.trim_entry_points += 1
                 vid[dropped] = -2
+
+    def _trim_borders(self, ri, xyz, vid, uv, run_face, run_z, run_step):
+        """Where a stretch of a run's new points (``ri``, ``xyz``, ``vid``, ``uv`` sorted by run and
+        arc length) is dropped (``vid`` -2: beyond the face's (u, v) box or trim), the curve's points
+        where it crosses the trim between the stretch and the kept points either side of it
+        (``_into_trim``) take the stretch's end points' places (a stretch of one point gets a second):
+        the ring leaves the face's curve at the face's boundary, a point of the B-rep, not at
+        whichever of its samples came last inside. Where the surface's curve leaves the face between
+        two of its edges' crossings that the file's tolerance lets apart (boxed_sphere turned (30.7,
+        26.2, 59.9) at z = 0.1: edge tolerances of 0.055 mm, a curve leaving the face and coming back
+        0.3 mm further on), the ring bridges the gap from boundary to boundary. Not beside a corner:
+        ``_drop_off_trim_ends`` joins a corner to the first point inside. Returns the four arrays
+        (with the added points)."""
+        gone = vid == -2
+        if not gone.any():
+            return ri, xyz, vid, uv
+        n = len(ri)
+        ks = np.flatnonzero(gone)
+        # the stretches: runs of consecutive dropped points of one run
+        breaks = np.flatnonzero((np.diff(ks) != 1) | (ri[ks[1:]] != ri[ks[:-1]]))
+        starts, stops = ks[np.concatenate([[0], breaks + 1])], ks[np.concatenate([breaks, [len(ks) - 1]])]
+        added: list[tuple[int, np.ndarray, np.ndarray]] = []  # (insert before, xyz, uv)
+        for a, b in zip(starts.tolist(), stops.tolist(), strict=True):
+            beyond = {a: xyz[a].copy(), b: xyz[b].copy()}  # (where they were dropped)
+            moved = False
+            for k, beside in ((a, a - 1), (b, b + 1)):
+                if not (0 <= beside < n and ri[beside] == ri[k] and vid[beside] != -2):
+                    continue
+                if vid[beside] in self.corner_vids:
+                    continue
+                r = int(ri[k])
+                entry = self._into_trim(
+                    int(run_face[r]), float(run_z[r]), float(run_step[r]), beyond[k], xyz[beside]
+                )
+                if entry is None:
+                    continue
+                self.stats.trim_entry_points += 1
+                if moved:  # a stretch of one point, moved already: one more after it
+                    added.append((k + 1, *entry))
+                else:
+                    xyz[k], uv[k] = entry
+                    vid[k] = -1
+                    moved = a == b
+        if added:
+            at = np.array([p for p, _, _ in added])
+            ri = np.insert(ri, at, ri[at - 1])
+            vid = np.insert(vid, at, -1)
+            xyz = np.insert(xyz, at, np.array([q for _, q, _ in added]), axis=0)
+            uv = np.insert(uv, at, np.array([w for _, _, w in added]), axis=0)
+        return ri, xyz, vid, uv
 
     def _inside_face(self, run: _Run, uv: np.ndarray) -> bool:
         """Is a point solved on the run's surface (at these face parameters) inside the face's trimmed
