@@ -493,9 +493,11 @@ def test_off_centre_bends_are_within_budget_and_a_loose_files_offsets_are_put_do
     where the parabola through the sampled distances is low: exact points of the curve lay 0.0251
     and 0.0257 mm from the ring, over the 0.025 budget (the report's chord_dev, within its 1 um
     resolution, did not show it as a failure). Every exact point of the report's reference is now
-    within the budget of the ring (float32 slack only). And at five planes the ring's vertices lie
+    within the budget of the ring (float32 slack only). And at four planes the ring's vertices lie
     on a face 2-6 um from the reference, within that face's 0.059 mm edge tolerance: the report
-    says the file is exact only to its tolerances there, and names no gap of its reference."""
+    says the file is exact only to its tolerances there, and names no gap of its reference. (Five
+    before session 36: at plane 7 the ring and the reference now take the same point,
+    where the face's curve crosses its trim, ``RunRefiner._into_trim``.)"""
     path, params = _turned("assembly/boxed_sphere.step", (16.7, -95.9, 65.9))
     mesh = slice_step(path, params)
     d, plane, _ = _exact_points_from_ring(mesh, mesh.planes.section_z)
@@ -505,7 +507,7 @@ def test_off_centre_bends_are_within_budget_and_a_loose_files_offsets_are_put_do
     report = build_report(mesh.part, params, file_name=path.name, dst=mesh, baselines=())
     assert not [w for w in report.warnings if "reference misses part of the section" in w], report.warnings
     (loose,) = [w for w in report.warnings if "exact only to its tolerances" in w]
-    assert "at 5 plane(s) (7, 8, 12, 43, 47;" in loose, loose
+    assert "at 4 plane(s) (8, 12, 43, 47;" in loose, loose
 
 
 @pytest.mark.slow
