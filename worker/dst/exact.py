@@ -201,10 +201,7 @@ class FaceEval:
 
     def contains(self, u: float, v: float, tol: float = 1e-9) -> bool:
         """True if (u, v) is inside the trimmed face or on its boundary (a classifier kept per face)."""
-        fc = self._fclass.get(tol)
-        if fc is None:
-            fc = self._fclass[tol] = IntTools_FClass2d(self.face, tol)
-        return fc.Perform(gp_Pnt2d(u, v)) in (TopAbs_IN, TopAbs_ON)
+        return self._state(u, v, tol) in (TopAbs_IN, TopAbs_ON)
 
     def holds(self, xyz: tuple[float, float, float], tol: float) -> bool:
         """True if the point lies within ``tol`` of the face (the surface inside its boundary, as
@@ -216,10 +213,14 @@ class FaceEval:
     def strictly_contains(self, u: float, v: float, tol: float = 1e-9) -> bool:
         """True if (u, v) is inside the trimmed face and not on its boundary: the classifier's ON
         band follows the tolerances of the face's edges, as wide as a loose file's 0.03 mm."""
+        return self._state(u, v, tol) == TopAbs_IN
+
+    def _state(self, u: float, v: float, tol: float):
+        """The trim classifier's state of (u, v) (a classifier kept per face and tolerance)."""
         fc = self._fclass.get(tol)
         if fc is None:
             fc = self._fclass[tol] = IntTools_FClass2d(self.face, tol)
-        return fc.Perform(gp_Pnt2d(u, v)) == TopAbs_IN
+        return fc.Perform(gp_Pnt2d(u, v))
 
     def root_on_uv_segment(
         self, ua: float, va: float, ub: float, vb: float, c: float
