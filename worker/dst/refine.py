@@ -61,6 +61,7 @@ MID_OFF_PATH = 0.1
 # them (or its ends) is sampled in the middle of that gap too (``_gap_sags``)
 MAX_SAMPLE_GAP = 0.5
 TRIM_TOL_MM = 1e-6
+TRIM_ENTRY_TOL_MM = 1e-5  # where a section crosses its face's trim: found to this (``_into_trim``)
 POLE_TOL_MM = 1e-7  # an iso-line this short is a pole of its face's parametrisation
 # C0 lines of a face this close to its (u, v) box's sides are its edges' business (relative to the box)
 KINK_MARGIN_REL = 1e-9
@@ -852,9 +853,9 @@ class RunRefiner:
     ) -> tuple[np.ndarray, np.ndarray] | None:
         """The point (xyz, (u, v)) where face ``f``'s section curve at height ``zc`` enters the face's
         trim between ``outside`` (a point of the curve beyond the trim) and ``inside`` (one inside
-        it): bisection along the chord between them, each point solved from the chord
-        (``_solve_from_chord``), down to TRIM_TOL_MM; the outermost point found inside, or None
-        where no point between them is found inside.
+        it): bisection between them, each point solved by Newton from a seed between their (u, v)
+        (and kept between them along their chord), down to TRIM_ENTRY_TOL_MM; the outermost point
+        found inside, or None where no point between them is found inside.
 
         Inside is strictly inside the (u, v) trim (the classifier counts as on the boundary a band
         as wide as the edges' tolerances, whose outer side lies off the B-rep by as much: 0.011 mm
@@ -865,15 +866,20 @@ class RunRefiner:
         runs on the first, and only where its point fails the second goes on inward with both."""
         ev = self.mesh.faces[f]
         span = float(np.linalg.norm(inside - outside))
-        one = (np.array([f]), np.array([zc]), np.array([step]))
+        # the two points' (u, v) on one branch: each step seeds Newton between them
+        uv_out = np.array(ev.uv_near(tuple(map(float, outside)), (0.0, 0.0)))
+        uv_in = np.array(ev.uv_near(tuple(map(float, inside)), tuple(uv_out)))
+        face, plane, trust = np.array([f]), np.array([zc]), np.array([step])
+        chord = inside - outside
 
         def bisect(lo: float, hi: float, exact: bool) -> tuple[float, tuple[np.ndarray, np.ndarray] | None]:
             best = None
-            while (hi - lo) * span > TRIM_TOL_MM:
+            while (hi - lo) * span > TRIM_ENTRY_TOL_MM:
                 mid = 0.5 * (lo + hi)
-                guess = outside + mid * (inside - outside)
-                p, ok, uv = self._solve_from_chord(*one, guess[None], outside[None], inside[None])
-                if not ok[0]:
+                seed = uv_out + mid * (uv_in - uv_out)
+                p, ok, uv = self._newton(face, seed[:1], seed[1:], plane, trust)
+                t = float(np.dot(np.nan_to_num(p[0]) - outside, chord)) / max(span * span, 1e-300)
+                if not ok[0] or not 0.0 < t < 1.0:
                     break
                 if ev.strictly_contains(float(uv[0, 0]), float(uv[0, 1]), tol=TRIM_TOL_MM) and (
                     not exact or ev.holds(tuple(p[0]), TRIM_TOL_MM)
