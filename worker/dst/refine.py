@@ -1248,8 +1248,8 @@ class RunRefiner:
         two of its edges' crossings that the file's tolerance lets apart (boxed_sphere turned (30.7,
         26.2, 59.9) at z = 0.1: edge tolerances of 0.055 mm, a curve leaving the face and coming back
         0.3 mm further on), the ring bridges the gap from boundary to boundary. Not beside a corner:
-        ``_drop_off_trim_ends`` joins a corner to the first point inside. Returns the four arrays
-        (with the added points)."""
+        there ``_drop_off_trim_ends`` has moved the stretch's point next to the first one inside.
+        Returns the four arrays (with the added points)."""
         gone = vid == -2
         if not gone.any():
             return ri, xyz, vid, uv
