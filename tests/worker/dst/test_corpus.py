@@ -570,6 +570,19 @@ def test_a_curve_that_leaves_its_face_between_two_crossings_is_bridged_from_boun
 
 
 @pytest.mark.slow
+def test_corners_off_their_faces_curves_in_a_loose_file_are_joined_within_budget():
+    """trj7_b1-ec-214 (edge tolerances up to 0.3 mm) turned to (131.4, -77.1, 167.6): at z = 0.1 and
+    141.7 the ring's points piled up beside corners that lie off their faces' curves, and exact
+    points of the section lay 0.032 and 0.035 mm from the ring (budget 0.025). With the corners
+    joined to their faces' curves where those enter the trim (``RunRefiner._into_trim``), every
+    exact point of both planes is within the budget of the ring."""
+    path, params = _turned("freeform/trj7_b1-ec-214.stp", (131.4, -77.1, 167.6))
+    mesh = slice_step(path, params)
+    _assert_planes_within_budget(mesh, 0.1, 141.7)
+    assert mesh.stats["trim_entry_points"] > 0
+
+
+@pytest.mark.slow
 def test_report_reference_has_no_points_beyond_a_faces_trim_next_to_a_corner():
     """bug24595_281390 turned to (-119.7, -47.5, -168.3), z = 43.5: at a corner, face 0's surface lies
     off the B-rep edge within the file's tolerance and rises slowly, so its curve at the plane runs
