@@ -870,7 +870,6 @@ class RunRefiner:
         uv_out = np.array(ev.uv_near(tuple(map(float, outside)), (0.0, 0.0)))
         uv_in = np.array(ev.uv_near(tuple(map(float, inside)), tuple(uv_out)))
         face, plane, trust = np.array([f]), np.array([zc]), np.array([step])
-        chord = inside - outside
 
         def bisect(lo: float, hi: float, exact: bool) -> tuple[float, tuple[np.ndarray, np.ndarray] | None]:
             best = None
@@ -878,7 +877,7 @@ class RunRefiner:
                 mid = 0.5 * (lo + hi)
                 seed = uv_out + mid * (uv_in - uv_out)
                 p, ok, uv = self._newton(face, seed[:1], seed[1:], plane, trust)
-                t = float(np.dot(np.nan_to_num(p[0]) - outside, chord)) / max(span * span, 1e-300)
+                t = _chord_position(np.nan_to_num(p), outside[None], inside[None])[0]
                 if not ok[0] or not 0.0 < t < 1.0:
                     break
                 if ev.strictly_contains(float(uv[0, 0]), float(uv[0, 1]), tol=TRIM_TOL_MM) and (
@@ -1197,10 +1196,11 @@ class RunRefiner:
         curve than the chord across them (boxed_sphere turned (-85.5, 94.7, -31.9) at z = 0.3: 0.03
         mm off the B-rep, the chord 0.085 mm off): the build keeps them there.
 
-        Where points are dropped, the one next to the first point inside moves to where the curve
-        enters the trim between the two (``_into_trim``): the ring and the reference both join the
-        corner to the face's curve at the face's boundary, a point of the B-rep, not to whichever
-        of their samples came first inside it (0.003 mm apart on bug24595_281390 at z = 2.9)."""
+        Where points are dropped, ``_trim_borders`` then moves the one next to the first point
+        inside to where the curve enters the trim between the two: the ring and the reference both
+        join the corner to the face's curve at the face's boundary, a point of the B-rep, not to
+        whichever of their samples came first inside it (0.003 mm apart on bug24595_281390 at z =
+        2.9)."""
         bounds = np.searchsorted(ri, np.arange(len(runs) + 1)).tolist()
         corners = self.corner_vids
         for i, r in enumerate(runs):
@@ -1213,7 +1213,6 @@ class RunRefiner:
                 if end not in corners:
                     continue
                 dropped = []
-                inside = None
                 for k in walk:
                     if vid[k] == -2:
                         continue
@@ -1223,20 +1222,10 @@ class RunRefiner:
                             ends = (np.broadcast_to(xyz[at], pts.shape), np.broadcast_to(xyz[k], pts.shape))
                             if point_segment_distance(pts, *ends).max() > self.chord:
                                 dropped = []
-                        inside = k
                         break
                     dropped.append(k)
-                self.stats.off_trim_end_points += len(dropped)
-                if dropped and inside is not None:
-                    # the dropped point next to the first one inside moves to where the curve enters
-                    # the trim between them: the corner joins the face's curve at the trim
-                    last = dropped[-1]
-                    entry = self._into_trim(r.face, r.zc, r.max_step, xyz[last], xyz[inside])
-                    if entry is not None:
-                        xyz[last], uv[last] = entry
-                        dropped.pop()
-                        self.stats.trim_entry_points += 1
                 vid[dropped] = -2
+                self.stats.off_trim_end_points += len(dropped)
 
     def _trim_borders(self, ri, xyz, vid, uv, run_face, run_z, run_step):
         """Where a stretch of a run's new points (``ri``, ``xyz``, ``vid``, ``uv`` sorted by run and
@@ -1247,9 +1236,10 @@ class RunRefiner:
         whichever of its samples came last inside. Where the surface's curve leaves the face between
         two of its edges' crossings that the file's tolerance lets apart (boxed_sphere turned (30.7,
         26.2, 59.9) at z = 0.1: edge tolerances of 0.055 mm, a curve leaving the face and coming back
-        0.3 mm further on), the ring bridges the gap from boundary to boundary. Not beside a corner:
-        there ``_drop_off_trim_ends`` has moved the stretch's point next to the first one inside.
-        Returns the four arrays (with the added points)."""
+        0.3 mm further on), the ring bridges the gap from boundary to boundary. A stretch that
+        ``_drop_off_trim_ends`` dropped next to a corner moves only at its side away from the
+        corner: the corner joins the face's curve where it enters the trim. Returns the four arrays
+        (with the added points)."""
         gone = vid == -2
         if not gone.any():
             return ri, xyz, vid, uv
