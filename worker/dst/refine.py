@@ -609,7 +609,7 @@ class RunRefiner:
         segment = np.linalg.norm(xyz[b, :2] - xyz[a, :2], axis=1)
         inner = np.where(end == 0, b, a)  # (the end segment's other point)
         g_xyz, g_ok, g_uv = self._gap_end_points(
-            runs, run, end, foot_uv[far], off[far], 0.5 * segment, xyz[inner]
+            runs, run, end, foot_uv[far], off[far], 0.5 * segment, xyz[inner], np.concatenate(uv_all)[inner]
         )
         if not g_ok.any():
             return
@@ -815,6 +815,7 @@ class RunRefiner:
         off: np.ndarray,
         reach: np.ndarray,
         inner: np.ndarray,
+        inner_uv: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The section curve's point nearest each run end vertex that lies off its face's curve
         (``off``: its estimated distance, ``uv``: its foot on the face), by Newton onto the run's
@@ -842,18 +843,27 @@ class RunRefiner:
             if self.mesh.faces[face[i]].contains(float(out_uv[i, 0]), float(out_uv[i, 1]), tol=TRIM_TOL_MM):
                 continue
             ok[i] = False
-            entry = self._into_trim(int(face[i]), float(zc[i]), float(step[i]), xyz[i], inner[i])
+            entry = self._into_trim(
+                int(face[i]), float(zc[i]), float(step[i]), xyz[i], inner[i], out_uv[i], inner_uv[i]
+            )
             if entry is not None and np.linalg.norm(entry[0][:2] - self.pool.xyz[vid[i], :2]) <= near[i]:
                 xyz[i], out_uv[i], ok[i] = entry[0], entry[1], True
                 self.stats.trim_entry_points += 1
         return xyz, ok, out_uv
 
     def _into_trim(
-        self, f: int, zc: float, step: float, outside: np.ndarray, inside: np.ndarray
+        self,
+        f: int,
+        zc: float,
+        step: float,
+        outside: np.ndarray,
+        inside: np.ndarray,
+        uv_out: np.ndarray,
+        uv_in: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray] | None:
         """The point (xyz, (u, v)) where face ``f``'s section curve at height ``zc`` enters the face's
         trim between ``outside`` (a point of the curve beyond the trim) and ``inside`` (one inside
-        it): bisection between them, each point solved by Newton from a seed between their (u, v)
+        it; ``uv_out`` and ``uv_in`` their (u, v), NaN where not known): bisection between them, each point solved by Newton from a seed between their (u, v)
         (and kept between them along their chord), down to TRIM_ENTRY_TOL_MM; the outermost point
         found inside, or None where no point between them is found inside.
 
@@ -866,9 +876,18 @@ class RunRefiner:
         runs on the first, and only where its point fails the second goes on inward with both."""
         ev = self.mesh.faces[f]
         span = float(np.linalg.norm(inside - outside))
-        # the two points' (u, v) on one branch: each step seeds Newton between them
-        uv_out = np.array(ev.uv_near(tuple(map(float, outside)), (0.0, 0.0)))
-        uv_in = np.array(ev.uv_near(tuple(map(float, inside)), tuple(uv_out)))
+        # the two points' (u, v) on one branch: each step seeds Newton between them. Those Newton
+        # found, where it did (a run's end vertex has none): a projection seeded far from the point
+        # can come back at another point of the surface (bug24595_281390 turned (53.4, -11.0, 47.0)
+        # at z = 7.5: seeded at (0, 0), both came back at v = 0.05, off the face's box, v 0.70 to
+        # 1.08; the first seed between them took Newton 5 mm away, and no entry was found)
+        if np.isnan(uv_out).any():
+            seed = (0.0, 0.0) if np.isnan(uv_in).any() else tuple(map(float, uv_in))
+            uv_out = ev.uv_near(tuple(map(float, outside)), seed)
+        if np.isnan(uv_in).any():
+            uv_in = ev.uv_near(tuple(map(float, inside)), tuple(map(float, uv_out)))
+        uv_out = np.array(uv_out, dtype=np.float64)
+        uv_in = np.array(ev.same_branch(tuple(map(float, uv_in)), tuple(uv_out)))
         face, plane, trust = np.array([f]), np.array([zc]), np.array([step])
 
         def bisect(lo: float, hi: float, exact: bool) -> tuple[float, tuple[np.ndarray, np.ndarray] | None]:
@@ -1250,7 +1269,7 @@ class RunRefiner:
         starts, stops = ks[np.concatenate([[0], breaks + 1])], ks[np.concatenate([breaks, [len(ks) - 1]])]
         added: list[tuple[int, np.ndarray, np.ndarray]] = []  # (insert before, xyz, uv)
         for a, b in zip(starts.tolist(), stops.tolist(), strict=True):
-            beyond = {a: xyz[a].copy(), b: xyz[b].copy()}  # (where they were dropped)
+            beyond = {k: (xyz[k].copy(), uv[k].copy()) for k in (a, b)}  # (where they were dropped)
             moved = False
             for k, beside in ((a, a - 1), (b, b + 1)):
                 if not (0 <= beside < n and ri[beside] == ri[k] and vid[beside] != -2):
@@ -1258,8 +1277,15 @@ class RunRefiner:
                 if vid[beside] in self.corner_vids:
                     continue
                 r = int(ri[k])
+                out_xyz, out_uv = beyond[k]
                 entry = self._into_trim(
-                    int(run_face[r]), float(run_z[r]), float(run_step[r]), beyond[k], xyz[beside]
+                    int(run_face[r]),
+                    float(run_z[r]),
+                    float(run_step[r]),
+                    out_xyz,
+                    xyz[beside],
+                    out_uv,
+                    uv[beside],
                 )
                 if entry is None:
                     continue

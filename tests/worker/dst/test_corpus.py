@@ -554,6 +554,19 @@ def test_a_corner_whose_faces_curve_comes_nearest_beyond_the_trim_joins_it_at_th
     assert mesh.stats["trim_entry_points"] > 0
 
 
+def test_a_trim_entry_is_searched_for_between_the_parameters_newton_found():
+    """bug24595_281390 turned to (53.4, -11.0, 47.0), z = 7.5: a corner lies 0.051 mm from face 16's
+    section curve (a face of slope 0.08: 4 um off the surface), whose point nearest it lies beyond
+    the trim, and the 0.76 mm segment from the corner passed 0.030 mm from the curve where it enters
+    the face (budget 0.025). The search for that entry seeded Newton between the two points' (u, v)
+    as projections seeded at (0, 0) gave them, another place on the surface: the first seed sent
+    Newton 5 mm away and no entry was added. It starts from the (u, v) Newton found for them: every
+    exact point of the plane is within the budget of the ring."""
+    path, params = _turned("freeform/bug24595_281390.stp", (53.4, -11.0, 47.0))
+    mesh = slice_step(path, params)
+    _assert_planes_within_budget(mesh, 7.5)
+
+
 def test_a_curve_that_leaves_its_face_between_two_crossings_is_bridged_from_boundary_to_boundary():
     """boxed_sphere turned to (30.7, 26.2, 59.9), z = 0.1: face 47's section curve leaves the face
     and comes back 0.3 mm further on (its boundary edge, of tolerance 0.055 mm, lies 5.5 um above
