@@ -188,15 +188,25 @@ def slice_part(
         "t_junctions": 0,  # triangles split where a collapsed piece left one (see split_t_junctions)
     }
     sampling_totals = SamplingStats()
+    unresolved: list[tuple[int, float]] = []  # (plane, length) of segments kept over budget
     for si, (mesh, topo) in enumerate(zip(meshes, topos, strict=True)):
         frac = 0.1 + 0.85 * si / len(meshes)
         flat_planes.update(topo.flat_planes)
         report(f"sampling solid {si + 1}/{len(part.solids)}", frac)
         t = time.perf_counter()
+        # keep_unresolved: a segment still over budget after the refinement's last round is kept and
+        # named in the warnings: a job that ends with a mesh and says where it is off the budget,
+        # rather than with no mesh
         sampler = RingSampler(
-            mesh, topo, pool, segment_length=params.segment_length, chord_error=params.chord_error
+            mesh,
+            topo,
+            pool,
+            segment_length=params.segment_length,
+            chord_error=params.chord_error,
+            keep_unresolved=True,
         )
         tris, tstats = tessellate_solid(sampler, helper=helper)
+        unresolved += sampler.unresolved
         timings["tessellate"] = timings.get("tessellate", 0.0) + time.perf_counter() - t
         all_tris.append(tris)
         for k, v in tstats.items():
@@ -242,6 +252,8 @@ def slice_part(
             "the topology mesh, or a face whose parametrisation has a pole there); the deviation report "
             "measures them"
         )
+    if unresolved:
+        warnings.append(unresolved_segments_warning(unresolved, planes.z, params.chord_error))
     for j in sorted(flat_planes):
         warnings.append(
             f"a flat face lies on slicing plane {j} (z = {planes.z[j]:.4f} mm): the exact section there is an "
@@ -251,6 +263,7 @@ def slice_part(
             "volume between these two planes is not"
         )
     stats["flat_planes"] = sorted(flat_planes)
+    stats["unresolved_planes"] = sorted({j for j, _ in unresolved})
     stats["triangles"] = len(triangles)
     stats["vertices"] = len(vertices)
     stats["ring_vertices"] = int(ring.sum())
@@ -287,6 +300,24 @@ def _topomesh_or_finer(topomesh: Callable[..., TopoMesh], solid, deflection: flo
             except TessellationError:
                 continue  # the next factor
         raise exc from None
+
+
+def unresolved_segments_warning(
+    unresolved: list[tuple[int, float]], planes_z: np.ndarray, chord: float
+) -> str:
+    """The warning for ring segments still over the chord budget after the refinement's last round
+    (``RingSampler.unresolved``: (plane, length) each)."""
+    named = sorted({j for j, _ in unresolved})
+    j, longest = max(unresolved, key=lambda s: s[1])
+    shown = ", ".join(f"{planes_z[i]:.4f}" for i in named[:10]) + (", ..." if len(named) > 10 else "")
+    return (
+        f"{len(unresolved)} ring segment(s) at {len(named)} plane(s) (z = {shown} mm) still failed the "
+        f"{chord:g} mm chord check after the refinement's last round (every point solved between their "
+        "ends landing off the curve: where a face and its edges disagree by the file's tolerance, or the "
+        f"section is not a smooth curve); the longest, {longest:.3g} mm, at z = {planes_z[j]:.4f} mm. Each "
+        "is kept between its two exact end points, where the ring may be off the section by more than "
+        "the chord target; the deviation report measures it"
+    )
 
 
 def simplification_warnings(params: SliceParams) -> list[str]:

@@ -465,8 +465,8 @@ class RunRefiner:
                 last = ri[b_idx]  # the segments that failed the last round (split once more, unchecked)
                 if not self.keep_unresolved or run_traced[last].any():
                     raise TessellationError(f"section curves cannot meet the chord budget{worst}")
-                # (the report's reference) kept between the exact points they have, counted, and
-                # reported with their planes and lengths (``unresolved``) rather than failing the report
+                # kept between the exact points they have, counted, and reported with their planes
+                # and lengths (``unresolved``) rather than failing the build or the report
                 self.stats.unresolved_segments += len(last)
                 self.unresolved.extend(zip(run_plane[last].tolist(), length[b_idx].tolist(), strict=True))
             return split

@@ -207,7 +207,8 @@ class RingSampler(RunRefiner):
         # ``keep_unresolved``: a segment still over budget after the refinement's last round (a
         # file's corner micrometres off its face's curve, where every new point lands at the same
         # place) is kept between the points it has and recorded, (plane, length), in ``unresolved``,
-        # instead of failing the sampling: the report's reference, which says so in its warnings
+        # instead of failing the sampling (a traced run's still fails it: ``_sample_traced`` falls
+        # back); the DST build and the report's reference both say so in their warnings
         self.keep_unresolved = keep_unresolved
         self.unresolved: list[tuple[int, float]] = []
         self.trace_reach = max(EXCURSION_MAX_TRACE_MM, 100.0 * segment_length)  # a trace's longest
