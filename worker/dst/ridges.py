@@ -44,6 +44,7 @@ _GRAZE_ROUNDS = 3  # edges made by grazed splits checked again, at most this man
 _NOISE_MM = 1e-9  # a grazed edge's extreme must pass its plane by more than this (evaluator noise)
 _END_MARGIN = 1e-3  # an extreme this close (a fraction of the edge) to an end is at the end
 _UV_GAP_MM = 1e-6  # a corner whose (u, v) gives a point farther than this from its node is projected
+_SEAM_REL = 1e-9  # a node this close (a fraction of a closed edge's range) to its ends is at its seam
 
 
 def prepare_extremes(
@@ -315,8 +316,8 @@ def _split_along(mesh: TopoMesh, f: int, axis: int, value: float, sign: float) -
         ei = mesh.edge_of.get(key)
         p = None if ei is None else _edge_extreme_between(mesh, ei, a, b, sign)
         if p is None:
-            # inside the face; or on a boundary edge whose extreme is not between the two nodes
-            # (a closed edge's seam between them): the surface on the line, on the edge's pcurve
+            # inside the face; or on a boundary edge whose extreme is not between the two nodes:
+            # the surface on the line, on the edge's pcurve
             # where that is an iso-line itself (a seam), within the chord's sag of it otherwise
             s = d[r, i] / (d[r, i] - d_next[r, i])
             uv = mesh.tri_uv[t, i] + s * (mesh.tri_uv[t, (i + 1) % 3] - mesh.tri_uv[t, i])
@@ -400,11 +401,18 @@ def _edge_extreme_between(mesh: TopoMesh, ei: int, a: int, b: int, sign: float) 
 
 
 def _curve_span(ev, sa: float, sb: float) -> tuple[float, float] | None:
-    """(lo, hi): the curve parameters of two nodes on a B-rep edge, in order; None where they
-    straddle a closed edge's seam (the span between them the other way round: not worth the
-    bookkeeping)."""
+    """(lo, hi): the curve parameters of the span between two neighbouring nodes on a B-rep edge, in
+    order. On a closed edge the node at its seam vertex has two parameters, and ``parameter_of``
+    gives either: two nodes more than half the edge apart are that vertex and its neighbour across
+    the seam, whose span runs from the neighbour to the seam's other end (the highest point of a
+    tilted circle can lie there, next to its vertex). None where neither node is at the seam."""
     lo, hi = min(sa, sb), max(sa, sb)
     if ev.closed and hi - lo > 0.5 * (ev.s1 - ev.s0):
+        at_seam = _SEAM_REL * (ev.s1 - ev.s0)
+        if lo - ev.s0 <= at_seam:
+            return hi, ev.s1
+        if ev.s1 - hi <= at_seam:
+            return ev.s0, lo
         return None
     return lo, hi
 

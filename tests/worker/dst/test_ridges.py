@@ -162,3 +162,50 @@ def test_a_grazed_edge_whose_node_has_a_stale_uv_is_split_at_the_same_exact_poin
     assert split_grazed_edges(mesh, planes) == len(new)
     np.testing.assert_allclose(mesh.xyz[n0:], clean.xyz[n0:], atol=1e-9)
     assert {z: _loops_at(mesh, z) for z in planes} == {planes[0]: 2, planes[1]: 1}
+
+
+def test_a_closed_edges_extreme_just_across_its_seam_from_its_vertex_is_split_exactly(tmp_path):
+    """A cylinder turned so that its top circle's highest point lies 1 degree past the circle's seam
+    vertex (a node of the topology mesh), between that node and its neighbour. The vertex's curve
+    parameter is either end of the closed edge, here the far one: the span to the neighbour was
+    taken for the long way round and skipped, and a plane 0.05 um below the highest point (both
+    nodes 0.4 um and more below it) lost its sliver of the section. The span runs to the seam's
+    near end: the edge is split at its exact highest point (closed form), and the mesh stays a
+    closed, consistently oriented manifold."""
+    import build123d as bd
+
+    from worker.dst.ridges import split_grazed_edges
+    from worker.dst.step_io import orient
+
+    part = read_step(write_step(bd.Cylinder(5.0, 10.0), tmp_path / "cylinder.step", nurbs=False))
+    # turned 0.5 degrees about x and -30 about y: the top circle's height, R (b cos t + a sin t) +
+    # const, is highest at t = atan(a / b), about 1 degree (t = 0 at its seam vertex)
+    part = orient(part, (0.5, -30.0, 0.0))
+    mesh = build_topomesh(part.solids[0], deflection=0.01, angular=C.TOPO_ANGULAR_RAD, merge_tol=1e-8)
+    top = max(
+        (ei for ei, ev in enumerate(mesh.edges) if ev.closed),
+        key=lambda ei: mesh.edges[ei].point(mesh.edges[ei].s0)[2],
+    )
+    ev = mesh.edges[top]
+    # the exact highest point: the circle's centre plus its radius along its plane's steepest rise
+    circ = ev.ad.Circle()
+    centre, normal = np.array(circ.Location().Coord()), np.array(circ.Axis().Direction().Coord())
+    rise = np.array([0.0, 0.0, 1.0]) - normal[2] * normal
+    peak = centre + circ.Radius() * rise / np.linalg.norm(rise)
+    s_top = ev.parameter_of(tuple(peak))
+    seam = int(np.argmin(np.linalg.norm(mesh.xyz - ev.point(ev.s0), axis=1)))
+    (after,) = [
+        b if a == seam else a
+        for (a, b), ei in mesh.edge_of.items()
+        if ei == top and seam in (a, b) and ev.parameter_of(tuple(mesh.xyz[b if a == seam else a])) < np.pi
+    ]
+    s_seam, s_after = ev.parameter_of(tuple(mesh.xyz[seam])), ev.parameter_of(tuple(mesh.xyz[after]))
+    assert ev.s0 < s_top < s_after, "the highest point is not between the seam vertex and its neighbour"
+    assert s_seam == ev.s1, "the seam vertex's parameter is the near end: this test would show nothing"
+    assert peak[2] - max(mesh.xyz[seam, 2], mesh.xyz[after, 2]) > 4e-7
+    n0 = mesh.n_nodes
+    assert split_grazed_edges(mesh, np.array([peak[2] - 5e-8])) >= 1
+    nearest = np.linalg.norm(mesh.xyz[n0:] - peak, axis=1).min()
+    assert nearest < 1e-9, nearest
+    assert edge_defects(mesh.tris, mesh.n_nodes) == (0, 0)
+    assert np.array_equal(np.unique(mesh.tris), np.arange(mesh.n_nodes))
