@@ -1,0 +1,78 @@
+"""Random-turn scan: corpus parts built at random orientations, every exact point of the report's
+reference at every plane measured against the DST mesh's cut there (its STL's float32 vertices,
+placed as a slicer places them).
+
+Not a benchmark of time: a search for places where a ring strays from the exact section by more than
+its chord budget. Many of the build's sampling fixes came from such scans; each finding became a
+corpus test at its turn and plane. A turn is printed as the three angles that
+``dst slice --rotate-x/-y/-z`` (or ``SliceParams.rotate_*``) take, so a finding can be rebuilt alone.
+
+    python benchmarks/scan_turns.py --seed 3704 --turns 2 bug24595_281390.stp boxed_sphere.step
+
+Needs the shared corpus beside the checkout (``../shared/corpus``). Exits 1 if any turn is over budget
+or fails to build with an unexpected error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("parts", nargs="+", help="corpus file names (e.g. boxed_sphere.step)")
+    ap.add_argument("--seed", type=int, required=True, help="seed of the turns (report it with a finding)")
+    ap.add_argument("--turns", type=int, default=1, help="random turns per part")
+    args = ap.parse_args(argv)
+
+    from tests.conftest import CORPUS
+
+    if not CORPUS.is_dir():
+        print(f"the shared STEP corpus is not beside this checkout ({CORPUS})", file=sys.stderr)
+        return 2
+    from tests.worker.dst.test_corpus import FILES, _exact_points_from_ring, _params
+    from worker.dst.errors import DstError
+    from worker.dst.params import ROTATION_FIELDS
+    from worker.dst.pipeline import slice_step
+
+    by_name = {p.name: p for p in FILES}
+    unknown = [n for n in args.parts if n not in by_name]
+    if unknown:
+        print(f"not in the corpus list: {', '.join(unknown)}", file=sys.stderr)
+        return 2
+    rng = np.random.default_rng(args.seed)
+    failed = 0
+    for name in args.parts:
+        path = by_name[name]
+        for _ in range(args.turns):
+            turn = tuple(float(a) for a in np.round(rng.uniform(-180.0, 180.0, 3), 1))
+            params = _params(path).model_copy(update=dict(zip(ROTATION_FIELDS, turn, strict=True)))
+            t = time.perf_counter()
+            try:
+                mesh = slice_step(path, params)
+            except DstError as exc:  # refused files (not a solid, resource limits) are reported, not counted
+                print(f"{name} {turn} refused ({exc.code}): {str(exc)[:160]}", flush=True)
+                continue
+            d, plane, _ = _exact_points_from_ring(mesh, mesh.planes.section_z)
+            k = int(np.argmax(d))
+            over = d[k] > params.chord_error + 1e-6
+            failed += over
+            print(
+                f"{name} {turn} {'OVER' if over else 'ok'} max {d[k]:.4f} mm at z = {mesh.planes.z[plane[k]]:.4f}"
+                f" (budget {params.chord_error:g}; unresolved {mesh.stats['unresolved_segments']},"
+                f" gap samples {mesh.stats['gap_samples']}) {time.perf_counter() - t:.0f} s",
+                flush=True,
+            )
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
