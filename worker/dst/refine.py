@@ -862,10 +862,11 @@ class RunRefiner:
         uv_in: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray] | None:
         """The point (xyz, (u, v)) where face ``f``'s section curve at height ``zc`` enters the face's
-        trim between ``outside`` (a point of the curve beyond the trim) and ``inside`` (one inside
-        it; ``uv_out`` and ``uv_in`` their (u, v), NaN where not known): bisection between them, each point solved by Newton from a seed between their (u, v)
-        (and kept between them along their chord), down to TRIM_ENTRY_TOL_MM; the outermost point
-        found inside, or None where no point between them is found inside.
+        trim between ``outside`` (a point of the curve beyond the trim, Newton's, at ``uv_out``) and
+        ``inside`` (one inside it, at ``uv_in``; NaN for a run's end vertex, which has none):
+        bisection between them, each point solved by Newton from a seed between their (u, v) (and
+        kept between them along their chord), down to TRIM_ENTRY_TOL_MM; the outermost point found
+        inside, or None where no point between them is found inside.
 
         Inside is strictly inside the (u, v) trim (the classifier counts as on the boundary a band
         as wide as the edges' tolerances, whose outer side lies off the B-rep by as much: 0.011 mm
@@ -877,17 +878,15 @@ class RunRefiner:
         ev = self.mesh.faces[f]
         span = float(np.linalg.norm(inside - outside))
         # the two points' (u, v) on one branch: each step seeds Newton between them. Those Newton
-        # found, where it did (a run's end vertex has none): a projection seeded far from the point
-        # can come back at another point of the surface (bug24595_281390 turned (53.4, -11.0, 47.0)
-        # at z = 7.5: seeded at (0, 0), both came back at v = 0.05, off the face's box, v 0.70 to
-        # 1.08; the first seed between them took Newton 5 mm away, and no entry was found)
-        if np.isnan(uv_out).any():
-            seed = (0.0, 0.0) if np.isnan(uv_in).any() else tuple(map(float, uv_in))
-            uv_out = ev.uv_near(tuple(map(float, outside)), seed)
+        # found, not fresh projections: one seeded far from its point can come back at another
+        # point of the surface (bug24595_281390 turned (53.4, -11.0, 47.0) at z = 7.5: seeded at
+        # (0, 0), both came back at v = 0.05, off the face's box, v 0.70 to 1.08; the first seed
+        # between them took Newton 5 mm away, and no entry was found). A run's end vertex is
+        # projected from the other point's (u, v).
+        uv_out = np.asarray(uv_out, dtype=np.float64)
         if np.isnan(uv_in).any():
             uv_in = ev.uv_near(tuple(map(float, inside)), tuple(map(float, uv_out)))
-        uv_out = np.array(uv_out, dtype=np.float64)
-        uv_in = np.array(ev.same_branch(tuple(map(float, uv_in)), tuple(uv_out)))
+        uv_in = np.array(ev.same_branch(tuple(map(float, uv_in)), tuple(map(float, uv_out))))
         face, plane, trust = np.array([f]), np.array([zc]), np.array([step])
 
         def bisect(lo: float, hi: float, exact: bool) -> tuple[float, tuple[np.ndarray, np.ndarray] | None]:
