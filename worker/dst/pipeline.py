@@ -20,7 +20,7 @@ from worker.dst.meshops import edge_defects, signed_volume, split_t_junctions
 from worker.dst.params import SliceParams
 from worker.dst.planes import PlanePlan, plan_planes
 from worker.dst.ridges import prepare_extremes
-from worker.dst.sampling import RingSampler, SamplingStats, VertexPool
+from worker.dst.sampling import RingSampler, SamplingStats, VertexPool, unresolved_summary
 from worker.dst.sections import cut_topology
 from worker.dst.step_io import LoadedPart, heal_wires, orient, read_step
 from worker.dst.stl_io import write_3mf, write_stl
@@ -307,8 +307,7 @@ def unresolved_segments_warning(
 ) -> str:
     """The warning for ring segments still over the chord budget after the refinement's last round
     (``RingSampler.unresolved``: (plane, length) each)."""
-    named = sorted({j for j, _ in unresolved})
-    j, longest = max(unresolved, key=lambda s: s[1])
+    named, j, longest = unresolved_summary(unresolved)
     shown = ", ".join(f"{planes_z[i]:.4f}" for i in named[:10]) + (", ..." if len(named) > 10 else "")
     return (
         f"{len(unresolved)} ring segment(s) at {len(named)} plane(s) (z = {shown} mm) still failed the "

@@ -25,6 +25,7 @@ from worker.dst.cuts import cut_mesh, loop_self_crossings
 from worker.dst.deviation import SegmentSet
 from worker.dst.exact import FaceEval
 from worker.dst.report_schema import MeshReport
+from worker.dst.sampling import unresolved_summary
 from worker.dst.step_io import LoadedPart
 from worker.dst.topomesh import max_tolerance
 
@@ -240,8 +241,7 @@ def unresolved_reference_warning(
     (edge tolerances up to 0.3 mm), where every point solved between them landed at the curve."""
     if not unresolved:
         return None
-    planes = sorted({j for j, _ in unresolved})
-    j, longest = max(unresolved, key=lambda s: s[1])
+    planes, j, longest = unresolved_summary(unresolved)
     return (
         f"the exact reference could not be refined to its {resolution:g} mm resolution everywhere: "
         f"{len(unresolved)} segment(s) at {len(planes)} plane(s) ({', '.join(map(str, planes[:10]))}"

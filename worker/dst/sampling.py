@@ -151,6 +151,14 @@ class SamplingStats:
                 setattr(self, f.name, getattr(self, f.name) + getattr(other, f.name))
 
 
+def unresolved_summary(unresolved: list[tuple[int, float]]) -> tuple[list[int], int, float]:
+    """Of segments kept over budget after the refinement's last round (``RingSampler.unresolved``:
+    (plane, length) each, not empty): their planes in order, and the plane and length of the
+    longest."""
+    j, longest = max(unresolved, key=lambda s: s[1])
+    return sorted({p for p, _ in unresolved}), j, longest
+
+
 @dataclass
 class SampledShare:
     """Free loops sampled by a sampler of their own (``RingSampler.sample_share``), as another
