@@ -8,10 +8,12 @@ space. Then every segment is checked against the exact curve: the curve point ha
 ``segment_length``; a failing segment is split and its parts checked again. The midpoint test is
 exact for circles and measures the sagitta to second order in the segment length for other smooth
 curves; a segment whose midpoint may not show its largest distance (see ``_quarter_sags``) is also
-checked at its quarter points, a segment with an inflection inside (``_inflected_segments``) and a
-run's end segment leaving its corner too steeply (``_end_bend_segments``) again. A run's end vertex
-lying off its face's curve (the face and the edge the vertex is on apart within the file's
-tolerance) gets the curve's point nearest it as the run's next point (``_add_gap_points``).
+checked at its quarter points, a segment with an inflection inside (``inflected_segments``) and a
+run's end segment leaving its corner too steeply (``end_bend_segments``) again (those estimates and
+selections: ``chords``). A run's end vertex lying off its face's curve (the face and the edge the
+vertex is on apart within the file's tolerance) gets the curve's point nearest it as the run's next
+point (``run_ends``); points beyond the face's trim, poles and C0 lines of its surface are
+``face_limits``' business.
 
 All Newton solves of one batch of runs run together (numpy bookkeeping, one OCCT ``D1`` per point
 and iteration), which keeps the Python overhead per ring vertex to a few microseconds.
@@ -19,15 +21,23 @@ and iteration), which keeps the Python overhead per ring vertex to a few microse
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
 
 import numpy as np
-from OCP.collections import Array1_double
-from OCP.GeomAbs import GeomAbs_C1
 from OCP.gp import gp_Pnt, gp_Vec
 
+from worker.dst.chords import (
+    CHORD_FILL,
+    END_BEND_FACTOR,
+    chord_position,
+    end_bend_segments,
+    end_segments,
+    inflected_segments,
+    parabola_peak,
+    point_segment_distance,
+    run_successors,
+    zero_end_peak,
+)
 from worker.dst.constants import (
     LEVEL_TOL_MM,
     MAX_SUBDIVISION,
@@ -35,11 +45,10 @@ from worker.dst.constants import (
     SEGMENT_FILL,
 )
 from worker.dst.errors import TessellationError
+from worker.dst.face_limits import FaceLimits
+from worker.dst.run_ends import RunEnds
+from worker.dst.runs import GAP_POINT, GAP_SPAN_REL, Run
 
-# Segments are accepted with their sampled largest distance from the curve at most this share of the
-# chord budget: the samples (midpoint, quarter points, the parabola through them) can miss the true
-# largest distance by a few per cent where the bend is off-centre.
-CHORD_FILL = 0.97
 # A sampler that is ``halving`` checks its segments at this many times the chord; one within that
 # but not within the chord is kept as its two halves, each within the chord where the curve is a
 # parabola (a quarter of the distance), and checked so
@@ -53,69 +62,25 @@ HALF_SAG_SPREAD = 0.2
 # (Ventilator turned (-135.2, -164.2, -177.2) at z = 0.1: a 0.117 mm segment round a 0.035 mm bend,
 # sampled at 0.022 at its midpoint, one quarter point on the curve past its end, was 0.032 from it).
 DEEP_BEND_REL = 0.15
-GAP_SPAN_REL = 1e-6  # a seed interval this small (relative to its run) cannot hold another exact point
 # A segment's midpoint (placed by arc length along the seed path) this close to either end, relative
 # to the segment, is off the path: solved again from the chord's middle (``_midpoints_off_the_path``)
 MID_OFF_PATH = 0.1
 # A segment whose midpoint and quarter points leave more of its chord than this share unseen between
 # them (or its ends) is sampled in the middle of that gap too (``_gap_sags``)
 MAX_SAMPLE_GAP = 0.5
-TRIM_TOL_MM = 1e-6
-TRIM_ENTRY_TOL_MM = 1e-5  # where a section crosses its face's trim: found to this (``_into_trim``)
-POLE_TOL_MM = 1e-7  # an iso-line this short is a pole of its face's parametrisation
-# C0 lines of a face this close to its (u, v) box's sides are its edges' business (relative to the box)
-KINK_MARGIN_REL = 1e-9
-KINK_MIN_SPACING_REL = 1e-9  # a kink this close to a run's end (relative to its length) is that end
 # rounds of the check of segments with an inflection inside (each: those the last round split)
 MAX_INFLECTION_ROUNDS = 4
-# A shallow arc within the chord budget e leaves its chord at ~4 e / L (L: the chord's length). A run's
-# end segment whose curve leaves the corner at more than this many times that (by its own face's
-# tangent there) hides a bend next to the corner that its midpoint does not show: checked at its
-# quarter points and split where it fails, round after round on the new end segments
-END_BEND_FACTOR = 1.5
 MAX_END_BEND_ROUNDS = 6
-END_TANGENT_ITER = 6  # Gauss-Newton steps placing a run's end vertex on its face (from its seed path)
-# ... where it lies within this of the face (a file's tolerance): the face's tangent
-END_TANGENT_TOL_MM = 0.01
-END_TANGENT_MIN_SLOPE = 1e-3  # a face steeper than this (normal's horizontal share) has a section tangent
-# A run's end vertex farther than this many chord budgets from its face's section curve (the face
-# and the edge the vertex lies on apart within the file's tolerance, on a shallow face) gets the
-# curve's point nearest it as the run's next point (``_gap_end_points``)
-GAP_END_REL = 0.25
-_GAP_POINT = -3  # (vertex id placeholder of a point added by ``_gap_end_points``)
 MAX_REFINE_ROUNDS = 40  # halving a segment 24 times takes 1 m down to 60 nm: still failing means broken
 
 
-@dataclass
-class _Run:
-    """A piece of a section curve inside one face, parametrised by arc length along a seed path."""
-
-    face: int
-    s: np.ndarray  # (k,) arc length of the seed path, 0 .. length
-    uv: np.ndarray  # (k, 2) seed path in the face's (u, v)
-    max_step: float  # Newton trust region in (u, v)
-    start: int  # vertex id of the exact start point
-    end: int  # vertex id of the exact end point
-    n_seg: int  # initial number of segments
-    zc: float  # world height of the plane, mm
-    plane: int  # plane index
-    # exact ends far from their topology crossings, with the distance they moved: points near them are
-    # checked against the face's trim
-    moved: tuple[tuple[np.ndarray, float], ...] = ()
-    # the seed path is a trace along the exact curve (``_excursion_runs``): a point placed by arc length
-    # along it is on the right piece of the curve even where it projects beyond its segment's chord
-    traced: bool = False
-    # an end vertex off the face's curve gets the curve's nearest point next to it (``_add_gap_points``;
-    # the runs of free loops: a pinned loop's kept triangles take its segments' points as they are)
-    gap_ends: bool = False
-
-
-class RunRefiner:
+class RunRefiner(FaceLimits, RunEnds):
     """``RingSampler``'s sampling of runs under the budget (a mixin: the sampler's faces, vertex
-    pool, budgets and statistics are its own)."""
+    pool, budgets and statistics are its own). The checks at its faces' limits are ``FaceLimits``',
+    those at its runs' end vertices ``RunEnds``'."""
 
     # --- the batched sampler -------------------------------------------------------------------------
-    def _sample_runs(self, runs: list[_Run]) -> list[list[int]]:
+    def _sample_runs(self, runs: list[Run]) -> list[list[int]]:
         """Vertex ids of each run from start to end inclusive, within the length and chord budgets.
 
         A run crossing a line where its face's surface is only C0 (a kink inside one B-spline face)
@@ -132,143 +97,7 @@ class RunRefiner:
             out[i].extend(ids if not out[i] else ids[1:])
         return out
 
-    def _surface_kinks(self, f: int) -> tuple[np.ndarray, np.ndarray]:
-        """Interior parameter lines of face ``f`` where its surface is not C1 (C0 knots of a B-spline)."""
-        got = self._kinks.get(f)
-        if got is None:
-            ad, fe = self._ads[f], self.mesh.faces[f]
-            lines = []
-            for n, fill, lo, hi in (
-                (ad.NbUIntervals(GeomAbs_C1), ad.UIntervals, fe.u0, fe.u1),
-                (ad.NbVIntervals(GeomAbs_C1), ad.VIntervals, fe.v0, fe.v1),
-            ):
-                k = np.empty(0)
-                if n > 1:
-                    arr = Array1_double(1, n + 1)
-                    fill(arr, GeomAbs_C1)
-                    k = np.array([arr.Value(i) for i in range(2, n + 1)])
-                    margin = KINK_MARGIN_REL * (hi - lo)
-                    k = k[(k > lo + margin) & (k < hi - margin)]
-                lines.append(k)
-            got = self._kinks[f] = (lines[0], lines[1])
-        return got
-
-    def _split_at_kinks(self, runs: list[_Run]) -> tuple[list[_Run], list[int]]:
-        """Runs cut where their seed path crosses a C0 line of their face, and each piece's run index."""
-        pieces: list[_Run] = []
-        owner: list[int] = []
-        for i, run in enumerate(runs):
-            cuts = self._kink_points(run)
-            if not cuts:
-                pieces.append(run)
-                owner.append(i)
-                continue
-            bounds = [(0.0, run.uv[0], run.start)] + cuts + [(float(run.s[-1]), run.uv[-1], run.end)]
-            for (sa, uva, va), (sb, uvb, vb) in zip(bounds[:-1], bounds[1:], strict=True):
-                inner = (run.s > sa) & (run.s < sb)
-                s_ = np.concatenate([[sa], run.s[inner], [sb]]) - sa
-                uv = np.concatenate([[uva], run.uv[inner], [uvb]])
-                # the run's segments shared out by length (keeps a tiny loop's minimum count)
-                n_seg = max(1, math.ceil(run.n_seg * s_[-1] / max(float(run.s[-1]), 1e-300)))
-                pieces.append(
-                    _Run(
-                        run.face,
-                        s_,
-                        uv,
-                        run.max_step,
-                        va,
-                        vb,
-                        n_seg,
-                        run.zc,
-                        run.plane,
-                        run.moved,
-                        run.traced,
-                        run.gap_ends,
-                    )
-                )
-                owner.append(i)
-        return pieces, owner
-
-    def _kink_points(self, run: _Run) -> list[tuple[float, np.ndarray, int]]:
-        """(arc length, (u, v), vertex id) of the exact section points on the C0 lines the run crosses."""
-        ku, kv = self._surface_kinks(run.face)
-        if not (ku.size or kv.size):
-            return []
-        ev = self.mesh.faces[run.face]
-        ends_uv: list[tuple[float, float]] = []  # the run's exact ends' (u, v), found when needed
-
-        def ends_straddle(axis: int, k: float) -> bool:
-            """Whether the run's exact ends lie on either side of the line (or one on it)."""
-            if not ends_uv:
-                ends_uv.extend(
-                    ev.uv_near(tuple(map(float, self.pool.xyz[v])), tuple(map(float, uv)))
-                    for v, uv in ((run.start, run.uv[0]), (run.end, run.uv[-1]))
-                )
-            return (ends_uv[0][axis] - k) * (ends_uv[1][axis] - k) <= 0.0
-
-        cuts = []
-        for axis, lines in ((0, ku), (1, kv)):
-            w = run.uv[:, axis]
-            for k in lines.tolist():
-                side = w - k
-                # a seed path crosses the line between two of its points, or at one (the topology
-                # mesh has its nodes on the knot lines)
-                on = np.abs(side) <= KINK_MARGIN_REL * max(abs(k), 1.0)
-                side = np.where(on, 0.0, side)
-                cross = np.flatnonzero((side[:-1] * side[1:] < 0) | on[:-1])
-                for i in cross.tolist():
-                    if on[i] and i == 0:
-                        continue  # the run's start
-                    t = side[i] / (side[i] - side[i + 1]) if not on[i] else 0.0
-                    seed = run.uv[i] + t * (run.uv[i + 1] - run.uv[i])
-                    hit = self._on_iso_line(run, axis, k, float(seed[1 - axis]))
-                    # beyond the face's trim the line is crossed on the surface's extension, not on
-                    # the B-rep (past a corner of the run: tangent_features turned (-178.1, 115.6,
-                    # 106.9) had a corner 2.3 um off its faces at z = 9.9)
-                    if hit is not None and not ev.contains(*hit[0], tol=TRIM_TOL_MM):
-                        self.stats.outside_face_points += 1
-                        hit = None
-                    # The seed path crosses the line, but the exact curve between the run's exact
-                    # ends may not: an end solved past the line (boxed_sphere at z = 0.1, a rounded
-                    # corner's C0 line 0.03 mm beyond the crossing) puts the line's point outside the
-                    # run, and the ring would step back to it and forth again (a bow tie).
-                    if hit is not None and ends_straddle(axis, k):
-                        s_at = float(run.s[i] + t * (run.s[i + 1] - run.s[i]))
-                        cuts.append((s_at, hit[0], hit[1]))
-        cuts.sort(key=lambda c: c[0])
-        kept, last = [], 0.0
-        end = float(run.s[-1])
-        for s_at, uv, xyz in cuts:
-            if s_at - last > KINK_MIN_SPACING_REL * end and end - s_at > KINK_MIN_SPACING_REL * end:
-                vid = self.pool.add((xyz[0], xyz[1], run.zc), run.plane)
-                self.corner_vids.add(vid)
-                self.stats.kink_corners += 1
-                kept.append((s_at, uv, vid))
-                last = s_at
-        return kept
-
-    def _on_iso_line(self, run: _Run, axis: int, k: float, w: float) -> tuple[np.ndarray, np.ndarray] | None:
-        """The point at the run's height on the face's iso-line (u = k if axis is 0, else v = k),
-        by Newton along it from the other parameter ``w``; None if it does not converge nearby."""
-        ad = self._ads[run.face]
-        p, du, dv = gp_Pnt(), gp_Vec(), gp_Vec()
-        w0 = w
-        for _ in range(NEWTON_MAX_ITER):
-            u, v = (k, w) if axis == 0 else (w, k)
-            ad.D1(u, v, p, du, dv)
-            f = p.Z() - run.zc
-            if abs(f) < LEVEL_TOL_MM:
-                if abs(w - w0) > run.max_step:
-                    return None
-                return np.array([u, v]), np.array(p.Coord())
-            dz = (dv if axis == 0 else du).Z()
-            if dz == 0.0:
-                return None
-            step = -f / dz
-            w += max(-run.max_step, min(run.max_step, step))
-        return None
-
-    def _sample_pieces(self, runs: list[_Run]) -> list[list[int]]:
+    def _sample_pieces(self, runs: list[Run]) -> list[list[int]]:
         # All runs' seed paths in one array, each shifted past the previous, so that one np.interp
         # call seeds every point of every run.
         lengths = np.array([r.s[-1] for r in runs])
@@ -348,7 +177,7 @@ class RunRefiner:
                 # again from the chord, not on a trace): where a segment may be halved (``_halves``)
                 halvable = None
                 if halving:
-                    t_mid = _chord_position(np.nan_to_num(mid), pa, pb)
+                    t_mid = chord_position(np.nan_to_num(mid), pa, pb)
                     halvable = ~off_path & ~run_traced[ri] & (t_mid >= 0.25) & (t_mid <= 0.75)
                 quarters, q_ok = self._quarter_sags(
                     solve,
@@ -422,7 +251,7 @@ class RunRefiner:
                 # expected near k / m): one the seed path put elsewhere (a (u, v) path through a pole of
                 # the face's parametrisation, or round a bend it does not follow) is solved again from
                 # the chord's point projected on the face.
-                t_new = _chord_position(np.nan_to_num(new_xyz), pa[bq], pb[bq])
+                t_new = chord_position(np.nan_to_num(new_xyz), pa[bq], pb[bq])
                 margin = 0.25 / m[seg]
                 new_ok &= ((t_new > margin) & (t_new < 1.0 - margin)) | run_traced[ri[bq]]
                 if not new_ok.all():
@@ -496,13 +325,13 @@ class RunRefiner:
             ri, s_, xyz = np.concatenate(run_all), np.concatenate(s_all), np.concatenate(xyz_all)
             order = np.lexsort((s_, ri))
             # the tangents at the ends of segments long enough to leave them too steeply
-            ends = _end_segments(ri[order], xyz[order], END_BEND_FACTOR * 4.0 * e)
+            ends = end_segments(ri[order], xyz[order], END_BEND_FACTOR * 4.0 * e)
             run, end = ends[2:]
             todo = ~known[run, end]
             run, end = run[todo], end[todo]
             tangents[run, end] = self._end_tangents([runs[k] for k in run.tolist()], end)[0]
             known[run, end] = True
-            a, b = _end_bend_segments(xyz[order], ends, tangents, e)
+            a, b = end_bend_segments(xyz[order], ends, tangents, e)
             a, b = order[a], order[b]
             new = [
                 k
@@ -520,12 +349,12 @@ class RunRefiner:
         # side: checked again at its quarter points (and split where it fails), until none is left.
         # After the first round only segments at or next to the points it added are looked at.
         checked = 0  # points before this index: their segments checked
-        after = _run_successors(first, last)
+        after = run_successors(first, last)
         for _ in range(MAX_INFLECTION_ROUNDS):
             ri, s_, xyz = np.concatenate(run_all), np.concatenate(s_all), np.concatenate(xyz_all)
             order = np.lexsort((s_, ri))
-            gap_pt = np.concatenate(vid_all)[order] == _GAP_POINT
-            inflected = _inflected_segments(ri[order], xyz[order], after, gap_pt if gap_pt.any() else None)
+            gap_pt = np.concatenate(vid_all)[order] == GAP_POINT
+            inflected = inflected_segments(ri[order], xyz[order], after, gap_pt if gap_pt.any() else None)
             if checked:
                 new = order >= checked
                 near = new | np.roll(new, 1) | np.roll(new, -1)
@@ -575,341 +404,13 @@ class RunRefiner:
             d = np.where(spans, np.linalg.norm(xyz[1:] - xyz[:-1], axis=1), 0.0)
             self._record_gaps(d > L, d, xyz[:-1], xyz[1:], run_z[ri[:-1]], run_face[ri[:-1]])
         new = np.flatnonzero(vid < 0)
-        gap_pt = new[vid[new] == _GAP_POINT]
+        gap_pt = new[vid[new] == GAP_POINT]
         vid[new] = self.pool.extend(xyz[new, :2], run_z[ri[new]], run_plane[ri[new]])
         # where the curve meets the jump from a run's end vertex off it (the ring turns there)
         self.gap_vids.update(vid[gap_pt].tolist())
         bounds = np.searchsorted(ri, np.arange(n_runs + 1))
         ids = vid.tolist()
         return [ids[bounds[i] : bounds[i + 1]] for i in range(n_runs)]
-
-    def _add_gap_points(
-        self, runs, lengths, run_all, s_all, xyz_all, uv_all, vid_all, tangents, known, refine
-    ):
-        """``_sample_pieces``' points (``run_all`` ... ``vid_all``, appended to) with the section
-        curve's point nearest each end vertex (of a run with ``gap_ends``) that lies off its face's
-        curve by more than GAP_END_REL chord budgets (``_gap_end_points``), and the segment from each
-        such point on checked at its quarter points too (``refine``). ``tangents`` and ``known`` (the
-        run ends' section tangents) are filled in for those runs' ends of segments longer than the
-        chord (NaN where a point was added: the end's tangent is not the curve's)."""
-        e = self.chord
-        ri, s_, xyz = np.concatenate(run_all), np.concatenate(s_all), np.concatenate(xyz_all)
-        order = np.lexsort((s_, ri))
-        a, b, run, end = _end_segments(ri[order], xyz[order], e)
-        mine = np.array([runs[k].gap_ends for k in run.tolist()], dtype=bool)
-        a, b, run, end = a[mine], b[mine], run[mine], end[mine]
-        tangents[run, end], foot_uv, off = self._end_tangents(
-            [runs[k] for k in run.tolist()], end, offsets=True
-        )
-        known[run, end] = True
-        far = np.flatnonzero(off > GAP_END_REL * e)
-        if not len(far):
-            return
-        run, end, a, b = run[far], end[far], order[a[far]], order[b[far]]
-        segment = np.linalg.norm(xyz[b, :2] - xyz[a, :2], axis=1)
-        inner = np.where(end == 0, b, a)  # (the end segment's other point)
-        g_xyz, g_ok, g_uv = self._gap_end_points(
-            runs, run, end, foot_uv[far], off[far], 0.5 * segment, xyz[inner], np.concatenate(uv_all)[inner]
-        )
-        if not g_ok.any():
-            return
-        run, end, inner = run[g_ok], end[g_ok], inner[g_ok]
-        tangents[run, end] = np.nan
-        # next to the end in s (a segment between the two is a gap if it is ever found over budget)
-        at = np.where(end == 0, 0.0, lengths[run])
-        ds = np.minimum(0.5 * GAP_SPAN_REL * np.maximum(lengths[run], 1.0), 0.25 * np.abs(s_[inner] - at))
-        first_new = len(ri)
-        run_all.append(run)
-        s_all.append(np.where(end == 0, at + ds, at - ds))
-        xyz_all.append(g_xyz[g_ok])
-        uv_all.append(g_uv[g_ok])
-        vid_all.append(np.full(len(run), _GAP_POINT, dtype=np.int64))
-        self.stats.gap_ends += len(run)
-        ri, s_, xyz = np.concatenate(run_all), np.concatenate(s_all), np.concatenate(xyz_all)
-        order = np.lexsort((s_, ri))
-        pos = np.empty(len(order), dtype=np.int64)
-        pos[order] = np.arange(len(order))
-        p = pos[first_new:]  # the added points' places in run order, and their segments on the curve
-        pairs = sorted(
-            set(
-                zip(np.where(end == 0, p, p - 1).tolist(), np.where(end == 0, p + 1, p).tolist(), strict=True)
-            )
-        )
-        a, b = order[[q for q, _ in pairs]], order[[q for _, q in pairs]]
-        self.stats.end_bend_checks += len(a)
-        refine((ri[a], s_[a], s_[b], xyz[a], xyz[b]), forced=True)
-
-    def _through_poles(
-        self, runs: list[_Run], ri: np.ndarray, xyz: np.ndarray, uv: np.ndarray, out: np.ndarray
-    ) -> np.ndarray:
-        """Mask over ``out`` (points beyond their face's (u, v) box, in ``ri``, ``xyz``, ``uv`` sorted
-        by run and arc length) of those solved again (in place) on the face: where the box's edge
-        they lie beyond is a pole of the face's parametrisation (``_is_pole``) and the segment
-        joining the points either side of them would pass farther than the chord budget from them,
-        from their parameters mirrored through the pole (``_through_pole``). Dropped, such a point
-        left a chord across the tip of a section round the apex of a cap (bug27453_165-174_piattello
-        turned (89.5, 112.2, -78.9) at z = 86.5, 2 um below an apex: the point 2 um past the pole, 3 um
-        from the tip; the 0.25 mm segment across it 0.036 mm from the tip). Past an edge that is no
-        pole a point stays dropped: kept, it would lie off the B-rep (boxed_sphere turned (16.7,
-        -95.9, 65.9) at z = 1.5: 0.022 mm), and moved onto the edge's iso-line, a stretch of them
-        collapses onto one point (Ventilator turned (105.4, 22.5, -109.3): a mesh with open edges)."""
-        moved = np.zeros(len(out), dtype=bool)
-        gone = np.zeros(len(ri), dtype=bool)
-        gone[out] = True
-        n = len(ri)
-        for m, k in enumerate(out.tolist()):
-            a, b = k - 1, k + 1
-            while a >= 0 and gone[a] and ri[a] == ri[k]:
-                a -= 1
-            while b < n and gone[b] and ri[b] == ri[k]:
-                b += 1
-            if a < 0 or b >= n or ri[a] != ri[k] or ri[b] != ri[k]:
-                continue
-            if (
-                point_segment_distance(xyz[k : k + 1], xyz[a : a + 1], xyz[b : b + 1])[0]
-                <= CHORD_FILL * self.chord
-            ):
-                continue
-            run = runs[int(ri[k])]
-            below, above = self._beyond_face_box(np.array([run.face]), uv[k : k + 1])
-            below, above = below[0], above[0]
-            axes = np.flatnonzero(below | above)
-            if len(axes) != 1:
-                continue
-            axis = int(axes[0])
-            box = self._uv_box[run.face]
-            bound = float(box[2 * axis] if below[axis] else box[2 * axis + 1])
-            if not self._is_pole(run.face, axis, bound):
-                continue
-            hit = self._through_pole(run, axis, bound, uv[k], xyz[k])
-            if hit is None or not self.mesh.faces[run.face].contains(*hit[0].tolist(), tol=TRIM_TOL_MM):
-                continue
-            uv[k], xyz[k] = hit
-            moved[m] = True
-        self.stats.pole_points += int(moved.sum())
-        return moved
-
-    def _is_pole(self, f: int, axis: int, bound: float) -> bool:
-        """Is the iso-line at ``bound`` of face ``f``'s parameter ``axis`` (0: u, 1: v) one point of
-        its surface (a pole: the apex of a cap of revolution)?"""
-        box = self._uv_box[f]
-        lo, hi = box[2 * (1 - axis)], box[2 * (1 - axis) + 1]
-        p = gp_Pnt()
-        pts = []
-        for w in (lo, 0.5 * (lo + hi), hi):
-            self._ads[f].D0(*((bound, w) if axis == 0 else (w, bound)), p)
-            pts.append(p.Coord())
-        pts = np.array(pts)
-        return bool(np.linalg.norm(pts - pts[0], axis=1).max() < POLE_TOL_MM)
-
-    def _through_pole(
-        self, run: _Run, axis: int, bound: float, uv: np.ndarray, xyz: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray] | None:
-        """The section point on the face near ``xyz``, a point Newton put past a pole of the face's
-        parametrisation (beyond its (u, v) box at ``bound`` of parameter ``axis``): solved from the
-        parameters mirrored through the pole, half a period round (the same place, to second order,
-        on a smooth cap); None where the other parameter is not periodic or no point is found near."""
-        f = run.face
-        ad = self._ads[f]
-        periodic = ad.IsVPeriodic() if axis == 0 else ad.IsUPeriodic()
-        if not periodic:
-            return None
-        half = 0.5 * (ad.VPeriod() if axis == 0 else ad.UPeriod())
-        mirrored = uv.copy()
-        mirrored[axis] = 2.0 * bound - uv[axis]
-        mirrored[1 - axis] = uv[1 - axis] + half
-        p, ok, out_uv = self._newton(
-            np.array([f]), mirrored[:1], mirrored[1:], np.array([run.zc]), np.array([run.max_step])
-        )
-        if not ok[0] or np.linalg.norm(p[0] - xyz) > self.chord:
-            return None
-        return out_uv[0], p[0]
-
-    def _off_face_box(self, face: np.ndarray, uv: np.ndarray) -> np.ndarray:
-        """Mask of points whose face parameters lie beyond their face's (u, v) box."""
-        below, above = self._beyond_face_box(face, uv)
-        return (below | above).any(axis=1)
-
-    def _beyond_face_box(self, face: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(k, 2) masks of points' u and v below and above their face's (u, v) box, where a point
-        beyond it in that parameter is certainly off the face (``FaceEval.bounded``)."""
-        box, chk = self._uv_box[face], self._box_checked[face]
-        tol = 1e-9 * np.maximum(box[:, [1, 3]] - box[:, [0, 2]], 1.0)
-        return (uv < box[:, [0, 2]] - tol) & chk, (uv > box[:, [1, 3]] + tol) & chk
-
-    def _end_tangents(
-        self, runs: list[_Run], end: np.ndarray, offsets: bool = False
-    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-        """(k, 2): the unit xy tangent (either sense) of each of the runs' section curve at its start
-        (``end`` 0) or end vertex (1), on the run's own face (its normal's horizontal part turned a
-        quarter); NaN where the vertex is not found within END_TANGENT_TOL_MM of the face (a file's
-        tolerance) or the face is nearly horizontal there. The vertices' (u, v) by batched
-        Gauss-Newton from the seed path's ends.
-
-        With ``offsets``, also the (k, 2) (u, v) found (the vertex's foot on the face) and the (k,)
-        horizontal distance from the vertex to where one Newton step from its foot onto the run's
-        plane lands (the curve's nearest point to first order; inf where the face is horizontal at
-        the foot, NaN where the foot was not found: Gauss-Newton stuck or not converged, as at
-        bug27453_165-174_piattello's z = 14.1, where points put 0.33 mm off from such feet made the
-        ring cross itself); else None for both."""
-        k = len(runs)
-        out = np.full((k, 2), np.nan)
-        if not k:
-            return out, np.zeros((0, 2)), np.zeros(0)
-        face = np.array([r.face for r in runs])
-        target = self.pool.xyz[[r.end if w else r.start for r, w in zip(runs, end.tolist(), strict=True)]]
-        uv = np.array([r.uv[-1] if w else r.uv[0] for r, w in zip(runs, end.tolist(), strict=True)])
-        step = np.array([r.max_step for r in runs])
-        p, du, dv = gp_Pnt(), gp_Vec(), gp_Vec()
-        u, v = uv[:, 0].copy(), uv[:, 1].copy()
-        normal = np.full((k, 3), np.nan)
-        gap = np.full(k, np.inf)
-        foot = np.full((k, 3), np.nan)  # the surface point at the last (u, v) evaluated
-        act = np.arange(k)
-        found = np.ones(k, dtype=bool)  # the foot converged (the nearest point of the surface)
-        for _ in range(END_TANGENT_ITER):
-            res = self._d1(face[act], u[act], v[act], self._ads, p, du, dv)
-            r = res[:, :3] - target[act]
-            su, sv = res[:, 3:6], res[:, 6:9]
-            normal[act], gap[act], foot[act] = np.cross(su, sv), np.linalg.norm(r, axis=1), res[:, :3]
-            a11, a12, a22 = (su * su).sum(1), (su * sv).sum(1), (sv * sv).sum(1)
-            b1, b2 = (su * r).sum(1), (sv * r).sum(1)
-            det = a11 * a22 - a12 * a12
-            ok = det > 0
-            det = np.where(ok, det, 1.0)
-            stu, stv = -(a22 * b1 - a12 * b2) / det, -(a11 * b2 - a12 * b1) / det
-            norm = np.hypot(stu, stv)
-            scale = np.where(ok, np.minimum(1.0, step[act] / np.where(norm > 0, norm, 1.0)), 0.0)
-            u[act] += stu * scale
-            v[act] += stv * scale
-            # converged (the step's move on the surface under a nanometre) or stuck: done
-            move = np.linalg.norm(su * (stu * scale)[:, None] + sv * (stv * scale)[:, None], axis=1)
-            found[act[~ok]] = False
-            act = act[ok & (move > 1e-9)]
-            if not len(act):
-                break
-        found[act] = False
-        size = np.linalg.norm(normal, axis=1)
-        flat = np.hypot(normal[:, 0], normal[:, 1])
-        ok = (gap <= END_TANGENT_TOL_MM) & (flat > END_TANGENT_MIN_SLOPE * size)
-        out[ok] = np.column_stack([normal[ok, 1], -normal[ok, 0]]) / flat[ok, None]
-        if not offsets:
-            return out, None, None
-        # the Newton step from the foot onto the plane: horizontally f n_z n_h / |n_h|^2 (unit normal;
-        # a found foot's last step moved it under a nanometre: its last evaluation serves)
-        n = normal / np.maximum(size, 1e-300)[:, None]
-        h2 = n[:, 0] ** 2 + n[:, 1] ** 2
-        zc = np.array([r.zc for r in runs])
-        with np.errstate(divide="ignore", invalid="ignore"):
-            step_xy = ((foot[:, 2] - zc) * n[:, 2] / h2)[:, None] * n[:, :2]
-            off = np.linalg.norm(foot[:, :2] + step_xy - target[:, :2], axis=1)
-        off = np.where(np.isfinite(off), off, np.inf)
-        return out, np.column_stack([u, v]), np.where(found, off, np.nan)
-
-    def _gap_end_points(
-        self,
-        runs: list[_Run],
-        run: np.ndarray,
-        end: np.ndarray,
-        uv: np.ndarray,
-        off: np.ndarray,
-        reach: np.ndarray,
-        inner: np.ndarray,
-        inner_uv: np.ndarray,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The section curve's point nearest each run end vertex that lies off its face's curve
-        (``off``: its estimated distance, ``uv``: its foot on the face), by Newton onto the run's
-        plane from the foot: (k, 3) points, (k,) mask of those found, (k, 2) their (u, v). Found:
-        converged within 2 ``off`` + the chord of the vertex and within ``reach`` (half its end
-        segment: a point farther along would not come next to the vertex), and inside the face's
-        trim. Where the face's curve runs on the surface's extension past the edge there instead
-        (bug24595_281390 turned (-119.7, -47.5, -168.3) at z = 43.5, a corner 0.033 mm from face 0's
-        curve, which there lies 0.030 mm beyond the face), the point where the curve enters the trim
-        on its way to the end segment's other point ``inner`` (``_into_trim``), within the same
-        reach: bug24595_281390 turned (14.5, -140.6, 37.4) at z = 103.1 had a corner 0.030 mm from
-        face 15's curve, whose nearest point lay beyond the trim, and the 0.78 mm segment from the
-        corner passed 0.028 mm from the curve where it entered the face 0.011 mm further on."""
-        face = np.array([runs[r].face for r in run.tolist()])
-        zc = np.array([runs[r].zc for r in run.tolist()])
-        step = np.array([runs[r].max_step for r in run.tolist()])
-        xyz, ok, out_uv = self._newton(face, uv[:, 0].copy(), uv[:, 1].copy(), zc, step)
-        vid = np.array(
-            [runs[r].end if w else runs[r].start for r, w in zip(run.tolist(), end.tolist(), strict=True)]
-        )
-        near = np.minimum(2.0 * np.where(np.isfinite(off), off, 0.0) + self.chord, reach)
-        dist = np.linalg.norm(np.nan_to_num(xyz[:, :2]) - self.pool.xyz[vid, :2], axis=1)
-        ok &= dist <= near
-        for i in np.flatnonzero(ok).tolist():
-            if self.mesh.faces[face[i]].contains(float(out_uv[i, 0]), float(out_uv[i, 1]), tol=TRIM_TOL_MM):
-                continue
-            ok[i] = False
-            entry = self._into_trim(
-                int(face[i]), float(zc[i]), float(step[i]), xyz[i], inner[i], out_uv[i], inner_uv[i]
-            )
-            if entry is not None and np.linalg.norm(entry[0][:2] - self.pool.xyz[vid[i], :2]) <= near[i]:
-                xyz[i], out_uv[i], ok[i] = entry[0], entry[1], True
-                self.stats.trim_entry_points += 1
-        return xyz, ok, out_uv
-
-    def _into_trim(
-        self,
-        f: int,
-        zc: float,
-        step: float,
-        outside: np.ndarray,
-        inside: np.ndarray,
-        uv_out: np.ndarray,
-        uv_in: np.ndarray,
-    ) -> tuple[np.ndarray, np.ndarray] | None:
-        """The point (xyz, (u, v)) where face ``f``'s section curve at height ``zc`` enters the face's
-        trim between ``outside`` (a point of the curve beyond the trim, Newton's, at ``uv_out``) and
-        ``inside`` (one inside it, at ``uv_in``; NaN for a run's end vertex, which has none):
-        bisection between them, each point solved by Newton from a seed between their (u, v) (and
-        kept between them along their chord), down to TRIM_ENTRY_TOL_MM; the outermost point found
-        inside, or None where no point between them is found inside.
-
-        Inside is strictly inside the (u, v) trim (the classifier counts as on the boundary a band
-        as wide as the edges' tolerances, whose outer side lies off the B-rep by as much: 0.011 mm
-        on bug24595_281390 turned (-119.7, -47.5, -168.3) at z = 43.5), and on the face as
-        ``BRepExtrema`` measures it: near a loose file's edge a point inside the (u, v) trim can
-        still lie off the face by up to the edge's tolerance (0.005 mm on trj4_k1_top-pe-214 at z =
-        1.5, edge tolerances of 0.006 mm). That second test is costly (~0.3 ms), so the bisection
-        runs on the first, and only where its point fails the second goes on inward with both."""
-        ev = self.mesh.faces[f]
-        span = float(np.linalg.norm(inside - outside))
-        # the two points' (u, v) on one branch: each step seeds Newton between them. Those Newton
-        # found, not fresh projections: one seeded far from its point can come back at another
-        # point of the surface (bug24595_281390 turned (53.4, -11.0, 47.0) at z = 7.5: seeded at
-        # (0, 0), both came back at v = 0.05, off the face's box, v 0.70 to 1.08; the first seed
-        # between them took Newton 5 mm away, and no entry was found). A run's end vertex is
-        # projected from the other point's (u, v).
-        uv_out = np.asarray(uv_out, dtype=np.float64)
-        if np.isnan(uv_in).any():
-            uv_in = ev.uv_near(tuple(map(float, inside)), tuple(map(float, uv_out)))
-        uv_in = np.array(ev.same_branch(tuple(map(float, uv_in)), tuple(map(float, uv_out))))
-        face, plane, trust = np.array([f]), np.array([zc]), np.array([step])
-
-        def bisect(lo: float, hi: float, exact: bool) -> tuple[float, tuple[np.ndarray, np.ndarray] | None]:
-            best = None
-            while (hi - lo) * span > TRIM_ENTRY_TOL_MM:
-                mid = 0.5 * (lo + hi)
-                seed = uv_out + mid * (uv_in - uv_out)
-                p, ok, uv = self._newton(face, seed[:1], seed[1:], plane, trust)
-                t = _chord_position(np.nan_to_num(p), outside[None], inside[None])[0]
-                if not ok[0] or not 0.0 < t < 1.0:
-                    break
-                if ev.strictly_contains(float(uv[0, 0]), float(uv[0, 1]), tol=TRIM_TOL_MM) and (
-                    not exact or ev.holds(tuple(p[0]), TRIM_TOL_MM)
-                ):
-                    hi, best = mid, (p[0], uv[0])
-                else:
-                    lo = mid
-            return hi, best
-
-        at, best = bisect(0.0, 1.0, False)
-        if best is None or ev.holds(tuple(best[0]), TRIM_TOL_MM):
-            return best
-        return bisect(at, 1.0, True)[1]
 
     def _midpoints_off_the_path(
         self, face, zc, step, mid, mid_ok, pa, pb, length, traced, mid_uv
@@ -924,7 +425,7 @@ class RunRefiner:
         its middle is counted (``unchecked_segments``) and reported. Returns the mask of the
         midpoints solved again (found or not).
         """
-        t = _chord_position(np.nan_to_num(mid), pa, pb)
+        t = chord_position(np.nan_to_num(mid), pa, pb)
         # A segment no longer than the chord budget is within it whatever its arc (up to a half
         # circle): without a midpoint it passes. But a midpoint off its middle belongs to another
         # piece of the curve (on ec_soapbox-A turned 35 degrees about y, 0.2 mm from a 0.02 mm
@@ -961,7 +462,7 @@ class RunRefiner:
             ]
         ).reshape(-1, 2)
         p, ok, out_uv = self._newton(np.asarray(face), uv[:, 0], uv[:, 1], zc, np.asarray(step))
-        t = _chord_position(np.nan_to_num(p), pa, pb)
+        t = chord_position(np.nan_to_num(p), pa, pb)
         return p, ok & (t > 0.0) & (t < 1.0), out_uv
 
     def _quarter_sags(
@@ -1002,7 +503,7 @@ class RunRefiner:
         trj6_k1-al-214 turned (112.9, 27.5, -64.7) at z = 44.5: both of a 0.167 mm segment's quarter
         points landed past its ends round a 0.5 mm loop, its midpoint 0.024 mm from the chord, and
         it passed with the curve 0.028 mm from it). Where one quarter point is still lost, the
-        midpoint and the other give the peak (``_zero_end_peak``). The quarter points solved again
+        midpoint and the other give the peak (``zero_end_peak``). The quarter points solved again
         serve the peak only (``q_ok`` false: not a half's midpoint for ``_halves``).
         """
         ri, sa, sb, pa, pb = pending
@@ -1010,12 +511,12 @@ class RunRefiner:
         budget = e if budget is None else budget
         quarters = np.full((len(ri), 2, 3), np.nan)
         q_ok = np.zeros((len(ri), 2), dtype=bool)
-        t = _chord_position(np.nan_to_num(mid), pa, pb)
+        t = chord_position(np.nan_to_num(mid), pa, pb)
         within = sag <= e
         if budget > e:
             within |= (sag <= budget) & halvable
         check = mid_ok & within & (length <= self.seg_len) & (length > 1e-9)
-        if not everywhere:  # (else: segments with an inflection, ``_inflected_segments``)
+        if not everywhere:  # (else: segments with an inflection, ``inflected_segments``)
             check &= (sag > 0.25 * e) | (np.abs(t - 0.5) > 0.25)
         ci = np.flatnonzero(check)
         if not len(ci):
@@ -1027,7 +528,7 @@ class RunRefiner:
         # a point beyond the chord's ends belongs to the curve past a run's end (the topology path
         # overshooting a corner), not to this segment: it says nothing of the segment's distance
         # (except on a traced run, whose points are all this segment's)
-        t_q = _chord_position(pts, pa[q], pb[q])
+        t_q = chord_position(pts, pa[q], pb[q])
         ok &= ((t_q > 0.0) & (t_q < 1.0)) | traced[q]
         on_path = ok.copy()
         if (lost := np.flatnonzero(~ok)).size:
@@ -1038,13 +539,13 @@ class RunRefiner:
             found = lost[ok2]
             pts[found], t_q[found], ok[found] = (
                 p2[ok2],
-                _chord_position(p2[ok2], pa[q[found]], pb[q[found]]),
+                chord_position(p2[ok2], pa[q[found]], pb[q[found]]),
                 True,
             )
             self.stats.quarter_resolves += len(lost)
         q_sag = np.where(ok, point_segment_distance(pts, pa[q], pb[q]), 0.0)
         n = len(ci)
-        peak = _parabola_peak(
+        peak = parabola_peak(
             np.stack([t_q[:n], t[ci], t_q[n:]], axis=1),
             np.stack([q_sag[:n], sag[ci], q_sag[n:]], axis=1),
             ok[:n] & ok[n:],
@@ -1057,7 +558,7 @@ class RunRefiner:
         if one.any():
             pair_t = np.stack([t[ci], np.where(ok[:n], t_q[:n], t_q[n:])], axis=1)
             pair_f = np.stack([sag[ci], np.where(ok[:n], q_sag[:n], q_sag[n:])], axis=1)
-            peak = np.maximum(peak, np.where(one, _zero_end_peak(pair_t, pair_f), 0.0))
+            peak = np.maximum(peak, np.where(one, zero_end_peak(pair_t, pair_f), 0.0))
         np.maximum.at(sag, q, q_sag)
         sag[ci] = np.maximum(sag[ci], peak)
         self.stats.quarter_checks += n
@@ -1107,8 +608,8 @@ class RunRefiner:
         if not found.any():
             return
         rows, seg, g, p, d = rows[found], seg[found], g[found], p[found], d[found]
-        t_p = _chord_position(p, pa[seg], pb[seg])
-        peak = _parabola_peak(
+        t_p = chord_position(p, pa[seg], pb[seg])
+        peak = parabola_peak(
             np.stack([filled[rows, g], t_p, filled[rows, g + 1]], axis=1),
             np.stack([fs[rows, g], d, fs[rows, g + 1]], axis=1),
             np.ones(len(rows), dtype=bool),
@@ -1138,7 +639,7 @@ class RunRefiner:
         q = np.nan_to_num(np.swapaxes(quarters, 0, 1))
         good = np.swapaxes(q_ok, 0, 1) & kept[None, :]
         for h in range(2):
-            t = _chord_position(q[h], starts[h], ends[h])
+            t = chord_position(q[h], starts[h], ends[h])
             dist = point_segment_distance(q[h], starts[h], ends[h])
             half = np.linalg.norm(ends[h] - starts[h], axis=1)
             centred = (t >= 0.25) & (t <= 0.75)
@@ -1192,126 +693,6 @@ class RunRefiner:
         self.stats.max_gap_at = (
             "" if worst is None else _gap_place(worst[1], worst[2], *(np.array(worst[k]) for k in (3, 4)))
         )
-
-    def _drop_off_trim_ends(
-        self, runs: list[_Run], ri: np.ndarray, xyz: np.ndarray, vid: np.ndarray, uv: np.ndarray
-    ) -> None:
-        """Marks dropped (``vid`` -2) the new points next to each corner end of a run (``ri``, ``xyz``,
-        ``vid`` and ``uv`` sorted by run and arc length) that lie beyond the run's face's trim,
-        walking in from the corner up to the first point inside it: usually that is the first
-        point, one check a corner. The corner then joins the first point on the face. Unless
-        ``exact_trim``, they stay where the segment from the corner to that point would pass
-        farther than the chord budget from any of them.
-
-        At a corner where a face's surface lies off the B-rep edge within the file's tolerance, its
-        curve at the plane runs on past the face's trim, on the surface's extension: the report's
-        reference, sampled to 1 um, had a tongue of ~100 points up to 0.03 mm beyond the trim there
-        (bug24595_281390 turned (-119.7, -47.5, -168.3) at z = 43.5: a chord_dev of 0.0323 mm read
-        for a ring within its 0.025), and a DST ring's last point before a corner could lie 0.011 mm
-        along a straight section past the trim, 0.004 mm off the B-rep (trj4_k1_top-pe-214 at z =
-        11.1). But where the build's topology mesh gives the run the wrong face next to a corner (a
-        narrow face it missed), its points on the wrong surface's extension are nearer the B-rep's
-        curve than the chord across them (boxed_sphere turned (-85.5, 94.7, -31.9) at z = 0.3: 0.03
-        mm off the B-rep, the chord 0.085 mm off): the build keeps them there.
-
-        Where points are dropped, ``_trim_borders`` then moves the one next to the first point
-        inside to where the curve enters the trim between the two: the ring and the reference both
-        join the corner to the face's curve at the face's boundary, a point of the B-rep, not to
-        whichever of their samples came first inside it (0.003 mm apart on bug24595_281390 at z =
-        2.9)."""
-        bounds = np.searchsorted(ri, np.arange(len(runs) + 1)).tolist()
-        corners = self.corner_vids
-        for i, r in enumerate(runs):
-            b0, b1 = bounds[i], bounds[i + 1]
-            face = self.mesh.faces[r.face]
-            for end, at, walk in (
-                (r.start, b0, range(b0 + 1, b1)),
-                (r.end, b1 - 1, range(b1 - 2, b0 - 1, -1)),
-            ):
-                if end not in corners:
-                    continue
-                dropped = []
-                for k in walk:
-                    if vid[k] == -2:
-                        continue
-                    if vid[k] >= 0 or face.contains(float(uv[k, 0]), float(uv[k, 1]), tol=TRIM_TOL_MM):
-                        if dropped and not self.exact_trim:
-                            pts = xyz[dropped]
-                            ends = (np.broadcast_to(xyz[at], pts.shape), np.broadcast_to(xyz[k], pts.shape))
-                            if point_segment_distance(pts, *ends).max() > self.chord:
-                                dropped = []
-                        break
-                    dropped.append(k)
-                vid[dropped] = -2
-                self.stats.off_trim_end_points += len(dropped)
-
-    def _trim_borders(self, ri, xyz, vid, uv, run_face, run_z, run_step):
-        """Where a stretch of a run's new points (``ri``, ``xyz``, ``vid``, ``uv`` sorted by run and
-        arc length) is dropped (``vid`` -2: beyond the face's (u, v) box or trim), the curve's points
-        where it crosses the trim between the stretch and the kept points either side of it
-        (``_into_trim``) take the stretch's end points' places (a stretch of one point gets a second):
-        the ring leaves the face's curve at the face's boundary, a point of the B-rep, not at
-        whichever of its samples came last inside. Where the surface's curve leaves the face between
-        two of its edges' crossings that the file's tolerance lets apart (boxed_sphere turned (30.7,
-        26.2, 59.9) at z = 0.1: edge tolerances of 0.055 mm, a curve leaving the face and coming back
-        0.3 mm further on), the ring bridges the gap from boundary to boundary. A stretch that
-        ``_drop_off_trim_ends`` dropped next to a corner moves only at its side away from the
-        corner: the corner joins the face's curve where it enters the trim. Returns the four arrays
-        (with the added points)."""
-        gone = vid == -2
-        if not gone.any():
-            return ri, xyz, vid, uv
-        n = len(ri)
-        ks = np.flatnonzero(gone)
-        # the stretches: runs of consecutive dropped points of one run
-        breaks = np.flatnonzero((np.diff(ks) != 1) | (ri[ks[1:]] != ri[ks[:-1]]))
-        starts, stops = ks[np.concatenate([[0], breaks + 1])], ks[np.concatenate([breaks, [len(ks) - 1]])]
-        added: list[tuple[int, np.ndarray, np.ndarray]] = []  # (insert before, xyz, uv)
-        for a, b in zip(starts.tolist(), stops.tolist(), strict=True):
-            beyond = {k: (xyz[k].copy(), uv[k].copy()) for k in (a, b)}  # (where they were dropped)
-            moved = False
-            for k, beside in ((a, a - 1), (b, b + 1)):
-                if not (0 <= beside < n and ri[beside] == ri[k] and vid[beside] != -2):
-                    continue
-                if vid[beside] in self.corner_vids:
-                    continue
-                r = int(ri[k])
-                out_xyz, out_uv = beyond[k]
-                entry = self._into_trim(
-                    int(run_face[r]),
-                    float(run_z[r]),
-                    float(run_step[r]),
-                    out_xyz,
-                    xyz[beside],
-                    out_uv,
-                    uv[beside],
-                )
-                if entry is None:
-                    continue
-                self.stats.trim_entry_points += 1
-                if moved:  # a stretch of one point, moved already: one more after it
-                    added.append((k + 1, *entry))
-                else:
-                    xyz[k], uv[k] = entry
-                    vid[k] = -1
-                    moved = a == b
-        if added:
-            at = np.array([p for p, _, _ in added])
-            ri = np.insert(ri, at, ri[at - 1])
-            vid = np.insert(vid, at, -1)
-            xyz = np.insert(xyz, at, np.array([q for _, q, _ in added]), axis=0)
-            uv = np.insert(uv, at, np.array([w for _, _, w in added]), axis=0)
-        return ri, xyz, vid, uv
-
-    def _inside_face(self, run: _Run, uv: np.ndarray) -> bool:
-        """Is a point solved on the run's surface (at these face parameters) inside the face's trimmed
-        region? Newton works on the untrimmed surface: where the coarse topology crosses a nearly
-        tangent edge far from its exact root, seeds can converge beyond the face's boundary. (The
-        classifier brings parameters of a periodic surface into its period.)"""
-        inside = self.mesh.faces[run.face].contains(float(uv[0]), float(uv[1]), tol=TRIM_TOL_MM)
-        if not inside:
-            self.stats.outside_face_points += 1
-        return inside
 
     def _d1(
         self, fa: np.ndarray, ua: np.ndarray, va: np.ndarray, ads, p, du, dv, derivatives: bool = True
@@ -1399,186 +780,6 @@ class RunRefiner:
         converged = ~np.isnan(out[:, 0])
         self.stats.newton_failures += int((~converged).sum())
         return out, converged, out_uv
-
-
-def _parabola_peak(t: np.ndarray, f: np.ndarray, ok: np.ndarray) -> np.ndarray:
-    """Row-wise estimate of the largest distance of a segment's curve from its chord, from three
-    samples (t, f) (any order of t): the peak of the parabola through them where it opens downwards
-    and peaks between them (capped at 1.5 times the largest sample: nearly collinear samples would
-    extrapolate wildly), beyond the outer samples the bound of a concave distance, and the peak of
-    the quartic through the samples and the chord's ends (same cap). 0 if none.
-
-    The quartic (zero at t = 0 and 1, where the curve meets its chord) follows a bend off-centre
-    that the parabola through the samples alone flattens: boxed_sphere turned (16.7, -95.9, 65.9)
-    at z = 8.9, samples 0.0121, 0.0239, 0.0143 at t = 0.30, 0.61, 0.91 of a segment ending in a
-    corner, whose curve peaks at 0.0251 at t = 0.72 (a tighter bend towards the corner): the
-    parabola says 0.0239, the quartic 0.0252. (At z = 10.9 a 0.055 mm segment across a small lobe,
-    sampled at 0.0241, was 0.0257 from its curve.)"""
-    order = np.argsort(t, axis=1)
-    t, f = np.take_along_axis(t, order, axis=1), np.take_along_axis(f, order, axis=1)
-    (t1, t2, t3), (f1, f2, f3) = t.T, f.T
-    with np.errstate(divide="ignore", invalid="ignore"):
-        d12, d23 = (f2 - f1) / (t2 - t1), (f3 - f2) / (t3 - t2)
-        a = (d23 - d12) / (t3 - t1)
-        ts = 0.5 * (t1 + t2) - d12 / (2.0 * a)  # where the derivative d12 + a (2 t - t1 - t2) vanishes
-        peak = f1 + d12 * (ts - t1) + a * (ts - t1) * (ts - t2)
-        # beyond the outer samples, a concave distance (a convex arc) stays under the line through the
-        # two samples on that side: a bend at the segment's end (a line running into a small fillet)
-        # rises there after three samples on the straight part
-        start = np.where(f1 > f2, f1 + (f1 - f2) * np.clip(t1, 0.0, 1.0) / (t2 - t1), 0.0)
-        end = np.where(f3 > f2, f3 + (f3 - f2) * np.clip(1.0 - t3, 0.0, 1.0) / (t3 - t2), 0.0)
-    spaced = (t2 - t1 > 1e-9) & (t3 - t2 > 1e-9)
-    good = ok & (a < 0) & (ts > t1) & (ts < t3) & spaced & np.isfinite(peak)
-    cap = 1.5 * f.max(axis=1)
-    out = np.where(good, np.minimum(peak, cap), 0.0)
-    out = np.maximum(out, np.where(ok, _zero_end_peak(t, f), 0.0))  # the quartic
-    return np.maximum(out, np.where(ok & spaced, np.maximum(start, end), 0.0))
-
-
-def _zero_end_peak(t: np.ndarray, f: np.ndarray) -> np.ndarray:
-    """Row-wise estimate of the largest distance of a segment's curve from its chord from k samples
-    (t, f) ((n, k), t ascending or not): the peak of t (1 - t) g(t), g the polynomial of degree k - 1
-    through g_i = f_i / (t_i (1 - t_i)), zero at the chord's ends as the curve is (a circular arc's
-    distance is c t (1 - t) to second order: g constant), evaluated on a grid and capped at 1.5 times
-    the largest sample. Three samples give ``_parabola_peak``'s quartic; two (a quarter point lost)
-    a cubic. 0 where two samples are not apart or one lies within ``_QUARTIC_END`` of an end (no
-    shape there)."""
-    order = np.argsort(t, axis=1)
-    t, f = np.take_along_axis(t, order, axis=1), np.take_along_axis(f, order, axis=1)
-    k = t.shape[1]
-    x = _QUARTIC_GRID[None, :]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        g = f / (t * (1.0 - t))
-        lag = []  # the Lagrange basis on the samples, on the grid
-        for i in range(k):
-            num, den = 1.0, 1.0
-            for j in range(k):
-                if j != i:
-                    num = num * (x - t[:, j, None])
-                    den = den * (t[:, i] - t[:, j])
-            lag.append(num / den[:, None])
-        value = (x * (1.0 - x) * sum(g[:, i, None] * lag[i] for i in range(k))).max(axis=1)
-    spaced = (np.diff(t, axis=1) > 1e-9).all(axis=1)
-    good = spaced & (t[:, 0] > _QUARTIC_END) & (t[:, -1] < 1.0 - _QUARTIC_END) & np.isfinite(value)
-    return np.where(good, np.minimum(value, 1.5 * f.max(axis=1)), 0.0)
-
-
-# where ``_zero_end_peak`` is evaluated; samples this close to an end give it no shape
-_QUARTIC_GRID = np.linspace(0.0, 1.0, 65)
-_QUARTIC_END = 0.02
-
-
-def _chord_position(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise position of the projection of ``p`` on the line a-b (0 at a, 1 at b)."""
-    ab = b - a
-    denom = np.einsum("ij,ij->i", ab, ab)
-    return np.einsum("ij,ij->i", p - a, ab) / np.where(denom > 0, denom, 1.0)
-
-
-def point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise distance (mm) from points ``p`` to segments ``a``-``b``; all (n, 3)."""
-    t = np.clip(_chord_position(p, a, b), 0.0, 1.0)
-    return np.linalg.norm(p - (a + t[:, None] * (b - a)), axis=1)
-
-
-def _end_segments(
-    ri: np.ndarray, xyz: np.ndarray, longer: float = 0.0
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The first and last segments of each run (points ``ri``/``xyz`` sorted by run and arc
-    length) longer than ``longer``: their first and second points (indices), their run (its id in
-    ``ri``) and which end of it (0: start, 1: end)."""
-    if len(ri) < 2:
-        none = np.zeros(0, dtype=np.int64)
-        return none, none, none, none
-    first = np.flatnonzero(np.concatenate([[True], ri[1:] != ri[:-1]]))
-    last = np.concatenate([first[1:], [len(ri)]]) - 1
-    two = last > first  # runs with a segment
-    first, last = first[two], last[two]
-    a = np.concatenate([first, last - 1])
-    b = np.concatenate([first + 1, last])
-    end = np.repeat([0, 1], len(first))
-    long = np.hypot(*(xyz[b, :2] - xyz[a, :2]).T) > longer
-    return a[long], b[long], ri[a[long]], end[long]
-
-
-def _end_bend_segments(
-    xyz: np.ndarray, ends: tuple[np.ndarray, ...], tangents: np.ndarray, chord: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Of the runs' end segments ``ends`` (``_end_segments`` of the points ``xyz``, sorted by run
-    and arc length), those (first and last points, as indices into ``xyz``) whose curve leaves the
-    corner at their end (``tangents``: (n_runs, 2, 2) at start and end, NaN where unknown) at more
-    than END_BEND_FACTOR times the angle a shallow arc within ``chord`` of its chord makes with it
-    (4 chord / L). Segments no longer than the chord are within it whatever their arc."""
-    a, b, run, end = ends
-    at = tangents[run, end]
-    c = xyz[b, :2] - xyz[a, :2]
-    length = np.hypot(c[:, 0], c[:, 1])
-    with np.errstate(invalid="ignore", divide="ignore"):
-        sin = np.abs(at[:, 0] * c[:, 1] - at[:, 1] * c[:, 0]) / length
-        steep = (length > chord) & (sin > END_BEND_FACTOR * 4.0 * chord / length)
-    steep &= np.isfinite(sin)
-    return a[steep], b[steep]
-
-
-def _run_successors(first: np.ndarray, last: np.ndarray) -> np.ndarray:
-    """For each run (first and last vertex ids), the run that starts where it ends (the next piece
-    of its loop past the corner between them; itself for a loop that is one run), or -1 where no
-    run or more than one does (a vertex two loops share)."""
-    starts: dict[int, list[int]] = {}
-    for q, v in enumerate(first.tolist()):
-        starts.setdefault(v, []).append(q)
-    out = np.full(len(first), -1, dtype=np.int64)
-    for r, v in enumerate(last.tolist()):
-        if len(qs := starts.get(v, [])) == 1:
-            out[r] = qs[0]
-    return out
-
-
-def _inflected_segments(
-    ri: np.ndarray, xyz: np.ndarray, after: np.ndarray | None = None, gap: np.ndarray | None = None
-) -> np.ndarray:
-    """The segments (index of their first point) of runs ``ri`` (points sorted by run and arc
-    length, at ``xyz``) whose polyline turns one way at one end and the other way at the other: the
-    curve has an inflection inside, where the midpoint can lie on the chord while the curve is off it
-    on either side (r103ec turned (5.4, -134.3, 135.1), the report's reference at z = 12.1: a 1.67 mm
-    segment with its midpoint on the chord and the curve 5 um off it at a quarter and three quarters
-    of the way). At a run's end the turn is taken with the first segment of the run ``after`` it
-    (``_run_successors``; runs numbered 0 .. n - 1, each with two points or more); a segment ending
-    where that is not known counts as inflected. Turns of under 1e-9 rad count as none (a straight
-    line's points in a row). ``gap``: the points added next to run ends off their curve
-    (``_gap_end_points``): the turn there is not known, and the jump from the run's end to one is
-    no curve to check."""
-    if len(ri) < 2:
-        return np.empty(0, dtype=np.int64)
-    d = np.diff(xyz[:, :2], axis=0)
-    same = ri[1:] == ri[:-1]  # segment k: points k, k + 1 of one run
-    length = np.hypot(d[:, 0], d[:, 1])
-
-    def sign_of_turn(d0: np.ndarray, d1: np.ndarray) -> np.ndarray:
-        cross = d0[..., 0] * d1[..., 1] - d0[..., 1] * d1[..., 0]
-        size = np.hypot(d0[..., 0], d0[..., 1]) * np.hypot(d1[..., 0], d1[..., 1])
-        return np.where(np.abs(cross) > 1e-9 * size, np.sign(cross), 0.0)
-
-    turn = np.zeros(len(ri))  # at each point, where ``known``
-    turn[1:-1] = sign_of_turn(d[:-1], d[1:])
-    known = np.concatenate([[False], same[:-1] & same[1:], [False]])  # points inside their run
-    if after is not None and len(after):
-        bounds = np.searchsorted(ri, np.arange(len(after) + 1))
-        linked = np.flatnonzero(after >= 0)
-        end, start = bounds[linked + 1] - 1, bounds[after[linked]]  # the same vertex, in two runs
-        ok = (end - 1 >= bounds[linked]) & (start + 1 < bounds[after[linked] + 1])
-        end, start = end[ok], start[ok]
-        across = sign_of_turn(xyz[end, :2] - xyz[end - 1, :2], xyz[start + 1, :2] - xyz[start, :2])
-        turn[end], turn[start] = across, across
-        known[end], known[start] = True, True
-    if gap is not None:
-        known &= ~gap
-        run_end = np.concatenate([[True], ~same]) | np.concatenate([~same, [True]])
-        jump = np.concatenate([(gap[1:] & run_end[:-1]) | (gap[:-1] & run_end[1:]), [False]])
-        same = same & ~jump[:-1]
-    k = np.flatnonzero(same & (length > 1e-9))
-    flip = ~known[k] | ~known[k + 1] | (turn[k] * turn[k + 1] < 0)
-    return k[flip]
 
 
 def _gap_place(z: float, face: int, pa: np.ndarray, pb: np.ndarray) -> str:

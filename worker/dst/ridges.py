@@ -29,9 +29,9 @@ from __future__ import annotations
 import numpy as np
 from OCP.GeomAbs import GeomAbs_Line, GeomAbs_Plane
 
+from worker.dst.chords import point_segment_distance
 from worker.dst.constants import ON_PLANE_TOL_MM
 from worker.dst.lowest import face_optimum_from_nodes, snap_local_extremes
-from worker.dst.refine import point_segment_distance
 from worker.dst.topomesh import TopoMesh
 
 # a plane this many topology deflections beside a face's highest (lowest) node may miss its sliver

@@ -750,7 +750,7 @@ def test_a_segment_whose_quarter_point_is_lost_round_a_tight_bend_is_estimated_f
     bend had its midpoint (placed along the seed path) at t = 0.24 of its chord, 0.0187 mm from it,
     one quarter point past its end and the other at t = 0.62, 0.0242 mm: no parabola, and the
     larger sample passed, while the curve lay 0.0253 mm from the segment near its middle (budget
-    0.025). The two samples now give the peak of t (1 - t) g(t) (``_zero_end_peak``): every exact
+    0.025). The two samples now give the peak of t (1 - t) g(t) (``zero_end_peak``): every exact
     point of the plane's section is within the budget of the ring."""
     path, params = _turned("freeform/Ventilator.stp", (105.4, 22.5, -109.3))
     mesh = slice_step(path, params)

@@ -9,8 +9,8 @@ import pytest
 from OCP.GeomAbs import GeomAbs_Cone, GeomAbs_Plane
 
 from worker.dst import constants as C
+from worker.dst.chords import inflected_segments, point_segment_distance
 from worker.dst.pipeline import bbox_diagonal, topo_deflection
-from worker.dst.refine import _inflected_segments, point_segment_distance
 from worker.dst.sampling import RingSampler, VertexPool
 from worker.dst.sections import cut_topology
 from worker.dst.step_io import read_step
@@ -367,7 +367,7 @@ def test_a_ring_passing_a_run_out_of_order_is_traced_again_between_its_corners(b
 
 
 def test_stretches_to_trace_again_cluster_round_the_ring_and_replace_its_vertices():
-    from worker.dst.sampling import _clusters, _splice
+    from worker.dst.traces import _clusters, _splice
 
     # segments 3, 4 and 10 are one stretch (gap 6 <= 8), 30 another; 60 joins 3 round the end
     assert _clusters([3, 4, 10, 30], 64, 8) == [(3, 11), (30, 31)]
@@ -385,7 +385,7 @@ def test_a_trace_round_a_loop_smaller_than_the_segment_budget_is_not_taken(cone_
     trace fails, however small the loop is against the segment budget (trj4_k1_top-pe-214 at
     z = 1.3: round a 2.3 mm hole, all of it within the 0.8 mm budget of the trace's ends, three laps
     spliced into one ring). A trace along a piece the ring skips is taken."""
-    from worker.dst.sampling import _segments_beside
+    from worker.dst.traces import _segments_beside
 
     base, cone, _ = cone_sampler
     budget = 4.0 * R_Z  # every point of the circle within the budget of any other
@@ -416,7 +416,7 @@ def test_a_surface_kink_the_curve_does_not_cross_between_the_runs_ends_is_no_rin
     leaves the line's point outside the run, and the ring stepped back to it and forth again, a bow
     tie: no such point then. Where the curve crosses the line between the ends, it is the corner."""
     from tests.conftest import kinked_prism, write_step
-    from worker.dst.refine import _Run
+    from worker.dst.runs import Run
 
     corners = [(0.0, 0.0), (20.0, 0.0), (26.0, 9.0), (12.0, 15.0), (-3.0, 7.0)]
     mesh = _topomesh_of(write_step(kinked_prism(corners, 5.0), tmp_path / "kinked.step"))
@@ -426,14 +426,14 @@ def test_a_surface_kink_the_curve_does_not_cross_between_the_runs_ends_is_no_rin
     (wall,) = [k for k, f in enumerate(mesh.faces) if sampler._surface_kinks(k)[0].size]
     ev = mesh.faces[wall]
 
-    def run_to(end_xy, seed_end_xy) -> _Run:
+    def run_to(end_xy, seed_end_xy) -> Run:
         """The run from (18, 0) to ``end_xy`` on the wall, its seed path ending at ``seed_end_xy``."""
         a, b = (18.0, 0.0, z), (*end_xy, z)
         uv_a = ev.uv_near(a, (0.0, 0.0))
         uv = np.array([uv_a, ev.uv_near((*seed_end_xy, z), uv_a)])
         s = np.array([0.0, float(np.hypot(b[0] - a[0], b[1] - a[1]))])
         va, vb = sampler.pool.add(a, 0), sampler.pool.add(b, 0)
-        return _Run(wall, s, uv, 1.0, va, vb, 1, z, 0)
+        return Run(wall, s, uv, 1.0, va, vb, 1, z, 0)
 
     beyond = (21.0, 1.5)  # on the wall's next piece, past its C0 line at (20, 0)
     assert sampler._kink_points(run_to((19.97, 0.0), beyond)) == []  # both ends before the line
@@ -493,7 +493,7 @@ def test_a_point_between_two_others_along_the_section_is_told_from_one_beyond_th
 
 
 def test_segments_with_an_inflection_inside_are_told_from_those_of_a_convex_arc():
-    """``_inflected_segments``: on a convex arc only each run's first and last segments (whose
+    """``inflected_segments``: on a convex arc only each run's first and last segments (whose
     turn beyond the run's end is unknown); on an S-curve also the segment across the inflection;
     on a straight line (turns of rounding noise) the ends only."""
     t = np.linspace(0.0, 1.0, 9)
@@ -503,39 +503,39 @@ def test_segments_with_an_inflection_inside_are_told_from_those_of_a_convex_arc(
     s_curve = np.column_stack([x, np.tanh(3.0 * x), np.zeros_like(x)])
     xyz = np.concatenate([arc, line, s_curve])
     ri = np.repeat([0, 1, 2], [9, 9, 8])
-    got = _inflected_segments(ri, xyz).tolist()
+    got = inflected_segments(ri, xyz).tolist()
     assert got == [0, 7, 9, 16, 18, 18 + 3, 18 + 6]
 
 
 def test_a_runs_end_segments_are_judged_by_the_turn_across_its_corner_where_the_next_run_is_known():
-    """``_inflected_segments`` with each run's successor: a circle sampled as one run that ends
+    """``inflected_segments`` with each run's successor: a circle sampled as one run that ends
     where it starts has no segment to check; a circle in two runs joined both ways neither; with
     one of the links unknown, the two segments at that corner are checked."""
-    from worker.dst.refine import _run_successors
+    from worker.dst.chords import run_successors
 
     a = np.linspace(0.0, 2.0 * math.pi, 13)
     circle = np.column_stack([np.cos(a), np.sin(a), np.zeros_like(a)])
-    assert len(_inflected_segments(np.zeros(13, dtype=np.int64), circle, np.array([0]))) == 0
+    assert len(inflected_segments(np.zeros(13, dtype=np.int64), circle, np.array([0]))) == 0
     halves = np.concatenate([circle[:7], circle[6:]])  # run 0: points 0..6, run 1: 6..12 (= 0)
     ri = np.repeat([0, 1], 7)
     first, last = np.array([10, 16]), np.array([16, 10])  # vertex ids of the runs' ends
-    np.testing.assert_array_equal(_run_successors(first, last), [1, 0])
-    assert len(_inflected_segments(ri, halves, _run_successors(first, last))) == 0
-    assert _inflected_segments(ri, halves, np.array([1, -1])).tolist() == [0, 12]
+    np.testing.assert_array_equal(run_successors(first, last), [1, 0])
+    assert len(inflected_segments(ri, halves, run_successors(first, last))) == 0
+    assert inflected_segments(ri, halves, np.array([1, -1])).tolist() == [0, 12]
 
 
 def test_a_segments_largest_distance_is_estimated_where_its_bend_is_off_centre():
-    """``_parabola_peak`` from three samples of a segment's distance from its chord. A bend off
+    """``parabola_peak`` from three samples of a segment's distance from its chord. A bend off
     centre (the curve's distance t (1 - t)(1 + 3 t), peak 0.674 at t = 0.62, as a fillet running
     into the segment's end corner): the parabola through the samples at 1/4, 1/2, 3/4 peaks at
     0.657, 2.6% low (boxed_sphere turned (16.7, -95.9, 65.9) had a segment 0.0251 mm from its curve,
     sampled at 0.0239, against a 0.025 budget); the estimate is the peak within 0.1%. A circular arc
     of 90 degrees, sampled unevenly, is estimated within 0.5% of its exact sag, not above it by more
     (no point wasted on it)."""
-    from worker.dst.refine import _parabola_peak
+    from worker.dst.chords import parabola_peak
 
     def peak(t, f):
-        return float(_parabola_peak(np.asarray([t]), np.asarray([f]), np.array([True]))[0])
+        return float(parabola_peak(np.asarray([t]), np.asarray([f]), np.array([True]))[0])
 
     def skewed(t):
         return t * (1.0 - t) * (1.0 + 3.0 * t)
@@ -556,12 +556,12 @@ def test_a_segments_largest_distance_is_estimated_where_its_bend_is_off_centre()
 
 
 def test_a_segments_largest_distance_is_estimated_from_two_samples_where_a_quarter_point_is_lost():
-    """``_zero_end_peak``: a segment round a tight bend whose midpoint (placed along the seed path)
+    """``zero_end_peak``: a segment round a tight bend whose midpoint (placed along the seed path)
     lies at t = 0.24 of its chord and one of whose quarter points lands past its end (saying nothing),
     the other at t = 0.62. An arc of 57 degrees over the chord: the larger sample is 5% below the
     arc's sag, the estimate within 1% of it (Ventilator turned (105.4, 22.5, -109.3): 0.0242 and
     0.0253). Samples too close together or to an end say nothing (0)."""
-    from worker.dst.refine import _zero_end_peak
+    from worker.dst.chords import zero_end_peak
 
     half = math.radians(28.5)  # the arc of radius 1 from -28.5 to +28.5 degrees over its chord
 
@@ -571,7 +571,7 @@ def test_a_segments_largest_distance_is_estimated_from_two_samples_where_a_quart
 
     sag = 1.0 - math.cos(half)
     t = np.array([[0.24, 0.62], [0.62, 0.24], [0.3, 0.3], [0.01, 0.5]])
-    est = _zero_end_peak(t, sample(t))
+    est = zero_end_peak(t, sample(t))
     assert sample(t[0]).max() < 0.96 * sag
     assert est[0] == pytest.approx(sag, rel=1e-2) and est[1] == est[0]
     assert est[2] == 0.0 and est[3] == 0.0
@@ -637,7 +637,7 @@ def test_a_runs_end_tangent_is_its_faces_section_tangent_at_the_corner(cone_samp
     """``_end_tangents``: each run's start and end vertex placed on the run's own face from its seed
     path's ends (here seeds 0.05 off in (u, v)), and the section's tangent there (either sense): on
     the cone at z = 5, the circle's tangent at each point; NaN for a vertex off its face."""
-    from worker.dst.refine import _Run
+    from worker.dst.runs import Run
 
     sampler, cone, _ = cone_sampler
     ev = sampler.mesh.faces[cone]
@@ -646,7 +646,7 @@ def test_a_runs_end_tangent_is_its_faces_section_tangent_at_the_corner(cone_samp
     vids = [sampler.pool.add(tuple(p), 0) for p in points]
     seeds = [np.array(ev.uv_near(tuple(_on_circle(a)), (0.0, 0.0))) + 0.05 for a in (*angles, 5.0)]
     runs = [
-        _Run(cone, np.array([0.0, 1.0]), np.array([seeds[i], seeds[j]]), 0.5, vids[i], vids[j], 1, Z, 0)
+        Run(cone, np.array([0.0, 1.0]), np.array([seeds[i], seeds[j]]), 0.5, vids[i], vids[j], 1, Z, 0)
         for i, j in ((0, 1), (2, 3))
     ]
     got = sampler._end_tangents([runs[0], runs[0], runs[1], runs[1]], np.array([0, 1, 0, 1]))[0]
@@ -657,13 +657,13 @@ def test_a_runs_end_tangent_is_its_faces_section_tangent_at_the_corner(cone_samp
 
 
 def test_an_end_segment_leaving_its_corner_steeper_than_a_shallow_arc_is_told():
-    """``_end_bend_segments``: a run's first or last segment whose curve leaves the corner at more
+    """``end_bend_segments``: a run's first or last segment whose curve leaves the corner at more
     than 1.5 times the angle a shallow arc within the chord makes with its chord (4 e / L). Runs of
     a circle's arc, 0.6 mm segments at a 0.025 mm chord: an arc at the budget (tangent 0.167 rad
     off the chord) is not; the same points with the start tangent turned 0.44 rad off (the bend
     next to boxed_sphere's corner) are, at the start only; a segment no longer than the chord, or an
     unknown tangent (NaN), is not."""
-    from worker.dst.refine import _end_bend_segments, _end_segments
+    from worker.dst.chords import end_bend_segments, end_segments
 
     e, length = 0.025, 0.6
     radius = length**2 / (8.0 * e)  # the arc whose sag over a 0.6 mm chord is the budget
@@ -675,16 +675,16 @@ def test_an_end_segment_leaving_its_corner_steeper_than_a_shallow_arc_is_told():
     start_t = np.array([math.cos(ang[0]), -math.sin(ang[0])])
     end_t = np.array([math.cos(ang[-1]), -math.sin(ang[-1])])
     tangents = np.array([[start_t, end_t]])
-    a, b = _end_bend_segments(arc, _end_segments(ri, arc), tangents, e)
+    a, b = end_bend_segments(arc, end_segments(ri, arc), tangents, e)
     assert len(a) == 0
     turn = 0.44
     steep = np.array([math.cos(ang[0] - turn), -math.sin(ang[0] - turn)])
-    a, b = _end_bend_segments(arc, _end_segments(ri, arc), np.array([[steep, end_t]]), e)
+    a, b = end_bend_segments(arc, end_segments(ri, arc), np.array([[steep, end_t]]), e)
     assert a.tolist() == [0] and b.tolist() == [1]
     short = arc * (0.9 * e / length)  # every segment shorter than the chord
-    assert len(_end_bend_segments(short, _end_segments(ri, short), np.array([[steep, end_t]]), e)[0]) == 0
+    assert len(end_bend_segments(short, end_segments(ri, short), np.array([[steep, end_t]]), e)[0]) == 0
     assert (
-        len(_end_bend_segments(arc, _end_segments(ri, arc), np.array([[[np.nan, np.nan], end_t]]), e)[0]) == 0
+        len(end_bend_segments(arc, end_segments(ri, arc), np.array([[[np.nan, np.nan], end_t]]), e)[0]) == 0
     )
 
 
@@ -696,7 +696,7 @@ def test_a_run_end_off_its_faces_curve_gets_the_curves_nearest_point_next_to_it(
     the budget of the ring (the runs of free loops). A sampler without ``gap_ends`` (the report's
     reference) adds none: its segment checks split the end segment over and over towards that
     point instead."""
-    from worker.dst.refine import _Run
+    from worker.dst.runs import Run
 
     sampler, cone, _ = cone_sampler
     plain = RingSampler(
@@ -711,7 +711,7 @@ def test_a_run_end_off_its_faces_curve_gets_the_curves_nearest_point_next_to_it(
     for s in (sampler, plain):
         vids = [s.pool.add(tuple(start), 0), s.pool.add(tuple(_on_circle(a1)), 0)]
         before = s.stats.gap_ends
-        run = _Run(cone, np.array([0.0, R_Z * (a1 - a0)]), uv, 0.5, *vids, 1, Z, 0, gap_ends=True)
+        run = Run(cone, np.array([0.0, R_Z * (a1 - a0)]), uv, 0.5, *vids, 1, Z, 0, gap_ends=True)
         (ids,) = s._sample_runs([run])
         assert ids[0] == vids[0] and ids[-1] == vids[1]
         rings.append(s.pool.xyz[ids])
@@ -758,7 +758,7 @@ def test_a_corner_whose_faces_curve_runs_on_past_the_trim_joins_it_where_it_ente
     corner on the circle's extension 0.05 rad past its end: its samples there lie beyond the trim and
     are dropped) both join the corner to the circle where it enters the trim, (7.5, 0, 5): a point
     of the B-rep (``stats.trim_entry_points``), not their first sample inside the face."""
-    from worker.dst.refine import _Run
+    from worker.dst.runs import Run
 
     mesh, topo, cone = half_cone_sampler
     if reference:
@@ -775,7 +775,7 @@ def test_a_corner_whose_faces_curve_runs_on_past_the_trim_joins_it_where_it_ente
     uv = np.array([ev.uv_near(tuple(_on_circle(a)), (0.0, 0.0)) for a in np.linspace(a0, a1, 5)])
     vids = [s.pool.add(tuple(start), 0), s.pool.add(tuple(_on_circle(a1)), 0)]
     s.corner_vids.add(vids[0])
-    run = _Run(cone, R_Z * (np.linspace(a0, a1, 5) - a0), uv, 0.5, *vids, 4, Z, 0, gap_ends=not reference)
+    run = Run(cone, R_Z * (np.linspace(a0, a1, 5) - a0), uv, 0.5, *vids, 4, Z, 0, gap_ends=not reference)
     (ids,) = s._sample_runs([run])
     ring = s.pool.xyz[ids]
     assert ids[0] == vids[0] and ids[-1] == vids[1]
