@@ -30,7 +30,7 @@ from worker.dst.step_io import LoadedPart
 from worker.dst.topomesh import max_tolerance
 
 if TYPE_CHECKING:
-    from worker.dst.report import MeshInput, _Placed
+    from worker.dst.measure import MeshInput, Placed
 
 
 VOLUME_WARN_REL = 0.01  # a mesh enclosing 1% more or less than the solid is worth a warning
@@ -49,7 +49,7 @@ REFERENCE_PAIR_NEIGHBOURS = 16
 
 def reference_gap_warnings(
     part: LoadedPart,
-    dst: _Placed,
+    dst: Placed,
     result: MeshReport,
     ref_set: SegmentSet,
     heights: np.ndarray,

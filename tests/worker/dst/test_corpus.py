@@ -466,10 +466,11 @@ def _exact_points_from_ring(mesh, heights: np.ndarray) -> tuple[np.ndarray, np.n
     places them) and the index of its plane among ``heights``: (distances, planes, points)."""
     from worker.dst.cuts import cut_mesh
     from worker.dst.deviation import SegmentSet
-    from worker.dst.report import MeshInput, _exact_reference, _on_bed
+    from worker.dst.measure import MeshInput, on_bed
+    from worker.dst.report import _exact_reference
 
     ref = _exact_reference(mesh.part, mesh.params, heights, helper=False).sections
-    v, tr = _on_bed(MeshInput("dst", "dst", mesh.vertices32, mesh.triangles, None, ""))
+    v, tr = on_bed(MeshInput("dst", "dst", mesh.vertices32, mesh.triangles, None, ""))
     cut = cut_mesh(v, tr, heights)
     pts = np.concatenate([p for ls in ref.loops for p in ls])
     plane = np.concatenate([np.full(len(p), j) for j, ls in enumerate(ref.loops) for p in ls])

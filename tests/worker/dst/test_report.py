@@ -937,16 +937,16 @@ def test_a_crash_while_meshing_a_baseline_ends_the_report_cleanly(hemisphere, mo
 
 
 def test_plane_ranges_cover_every_plane_once_in_about_equal_work():
-    from worker.dst.report import _plane_ranges
+    from worker.dst.measure import plane_ranges
 
     cost = np.array([5.0, 1, 1, 1, 1, 1, 0, 0, 10, 1, 1, 1])
-    ranges = _plane_ranges(cost, chunk=8.0)
+    ranges = plane_ranges(cost, chunk=8.0)
     assert ranges[0][0] == 0 and ranges[-1][1] == len(cost)
     assert all(a[1] == b[0] for a, b in zip(ranges[:-1], ranges[1:], strict=True))  # no gaps, no overlaps
     assert all(j0 < j1 for j0, j1 in ranges)
     assert len(ranges) == 3  # 23 units of work in chunks of about 8
-    assert _plane_ranges(cost, chunk=np.inf) == [(0, len(cost))]
-    assert _plane_ranges(np.zeros(0), chunk=1.0) == [(0, 0)]
+    assert plane_ranges(cost, chunk=np.inf) == [(0, len(cost))]
+    assert plane_ranges(np.zeros(0), chunk=1.0) == [(0, 0)]
 
 
 def test_the_reports_own_process_measures_a_share_beside_its_helpers(hemisphere, monkeypatch, tmp_path):
@@ -960,14 +960,14 @@ def test_the_reports_own_process_measures_a_share_beside_its_helpers(hemisphere,
     if not fork_available():
         pytest.skip("fork is used on Linux only")
     path, mesh, _, _ = hemisphere
-    main, real, log = os.getpid(), report_mod._measure_pieces, tmp_path / "pieces.txt"
+    main, real, log = os.getpid(), report_mod.measure_pieces, tmp_path / "pieces.txt"
 
     def logged(pieces, *args):
         with open(log, "a") as fh:
             fh.writelines(f"{os.getpid() == main} {len(m.triangles)} {j0} {j1}\n" for m, j0, j1, _ in pieces)
         return real(pieces, *args)
 
-    monkeypatch.setattr(report_mod, "_measure_pieces", logged)
+    monkeypatch.setattr(report_mod, "measure_pieces", logged)
     monkeypatch.setattr(report_mod, "MIN_MEASURE_CHUNK", 1)  # helpers for however little work
     kw = dict(file_name=str(path), dst=mesh, baselines=["occt_fast"])
     forked = build_report(mesh.part, SliceParams(layer_height=0.2), **kw)
@@ -997,7 +997,7 @@ def test_a_measuring_helper_that_dies_is_a_resource_error(hemisphere, monkeypatc
     if not fork_available():
         pytest.skip("fork is used on Linux only")
     path, mesh, _, _ = hemisphere
-    main, real = os.getpid(), report_mod._measure_pieces
+    main, real = os.getpid(), report_mod.measure_pieces
 
     def killed(*args, **kwargs):
         if os.getpid() == main:  # this process measures a share too
@@ -1005,7 +1005,7 @@ def test_a_measuring_helper_that_dies_is_a_resource_error(hemisphere, monkeypatc
         faulthandler.disable()
         os.kill(os.getpid(), signal.SIGKILL)
 
-    monkeypatch.setattr(report_mod, "_measure_pieces", killed)
+    monkeypatch.setattr(report_mod, "measure_pieces", killed)
     monkeypatch.setattr(report_mod, "MIN_MEASURE_CHUNK", 1)  # a helper for however little work
     with pytest.raises(ResourceLimitExceeded, match=r"signal 9.*--processes 1") as info:
         build_report(mesh.part, SliceParams(layer_height=0.2), file_name=str(path), dst=mesh, baselines=[])
@@ -1112,16 +1112,16 @@ def test_the_reference_is_within_its_chord_of_a_turned_torus_in_closed_form(toru
 
 
 def test_a_range_of_planes_is_cut_from_its_own_triangles_as_the_whole_mesh_is_cut():
-    """``_Placed.cut`` (a report piece: the triangles its planes cross, their crossed planes taken
+    """``Placed.cut`` (a report piece: the triangles its planes cross, their crossed planes taken
     from the whole mesh's) gives, plane for plane, the cut of the whole mesh, planes through
     vertices included."""
     from worker.dst.cuts import cut_mesh
-    from worker.dst.report import _Placed
+    from worker.dst.measure import Placed
 
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=10.0)
     v, t = np.asarray(sphere.vertices), np.asarray(sphere.faces)
     heights = np.unique(np.concatenate([np.linspace(-9.5, 9.5, 23), v[::37, 2]]))  # some through vertices
-    placed = _Placed(v, t, heights)
+    placed = Placed(v, t, heights)
     for j0, j1 in [(0, len(heights)), (0, 5), (7, 8), (11, len(heights)), (3, 3)]:
         piece, whole = placed.cut(heights, j0, j1), cut_mesh(v, t, heights[j0:j1])
         assert np.array_equal(piece.loops, whole.loops) and np.array_equal(
