@@ -15,8 +15,15 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from worker.dst.chords import distances_to_segments
+
 _PLANE_SEPARATION_MM = 1e7  # farther than any two points of a part in one plane
 _PAIR_PIECES = 2.0  # see segment_pairs_near
+# A closed polyline turning back by more than this (cosine of the turn) at a vertex may have a needle
+# there (``loop_needles``): a spike out and back turns by nearly 180 degrees at its tip
+NEEDLE_TURN_COS = -0.9
+# ... whose legs are followed at most this many vertices each way from the tip
+NEEDLE_WINDOW = 256
 
 
 @dataclass
@@ -384,3 +391,39 @@ def loops_cut(loops: list[list[np.ndarray]]) -> MeshCut:
         vertex_plane=seg_plane.copy(),
         seg_node=seg_node,
     )
+
+
+def loop_needles(loop: np.ndarray, width: float, min_length: float) -> list[tuple[float, np.ndarray]]:
+    """The needles of the closed polyline ``loop`` (k, 2) longer than ``min_length``: where it turns
+    back at a vertex (by more than ``NEEDLE_TURN_COS``) and its two legs from there run within
+    ``width`` of each other, so that the loop encloses nothing there: a spike out and back along
+    itself, or the thin end of a cusp. A needle's length is how far from its tip (by arc length along
+    one leg, the longer such stretch of the two) the leg's points all stay within ``width`` of the
+    other leg, followed up to ``NEEDLE_WINDOW`` vertices each way (a leg may fold back on itself: the
+    bug27453 reference's spike returns past its root and out again by 7 um). Returns (length, tip
+    (2,)) of each, one per turning vertex."""
+    n = len(loop)
+    if n < 4:
+        return []
+    d_in = loop - np.roll(loop, 1, axis=0)  # (p[i] - p[i - 1])
+    d_out = np.roll(loop, -1, axis=0) - loop
+    size = np.linalg.norm(d_in, axis=1) * np.linalg.norm(d_out, axis=1)
+    cos = (d_in * d_out).sum(axis=1) / np.where(size > 0, size, 1.0)
+    out = []
+    m = min(NEEDLE_WINDOW, (n - 1) // 2)
+    steps = np.arange(m + 1)
+    for i in np.flatnonzero((cos < NEEDLE_TURN_COS) & (size > 0)).tolist():
+        a, b = loop[(i - steps) % n], loop[(i + steps) % n]  # the two legs, from the tip
+        length = max(_close_extent(a, b, width), _close_extent(b, a, width))
+        if length > min_length:
+            out.append((length, loop[i].copy()))
+    return out
+
+
+def _close_extent(leg: np.ndarray, other: np.ndarray, width: float) -> float:
+    """Arc length along ``leg`` (from ``leg[0]``) of its points before the first farther than
+    ``width`` from the polyline ``other``."""
+    d = distances_to_segments(leg[1:], np.stack([other[:-1], other[1:]], axis=1))
+    far = np.flatnonzero(d > width)
+    last = len(leg) - 1 if not len(far) else int(far[0])  # leg[last] is the last point within width
+    return float(np.linalg.norm(np.diff(leg[: last + 1], axis=0), axis=1).sum())

@@ -243,7 +243,7 @@ def slice_part(
             f"{stats['tolerance_gaps']} ring segment(s), up to {stats['max_gap_mm']:.3g} mm long, exceed the "
             "segment budget because no exact point could be placed between their ends (a plane nearly "
             "tangent to the surface, or a face and its edge disagreeing within the file's tolerance); "
-            f"the longest at {stats['max_gap_at']}"
+            f"the longest at z = {planes.z[stats['max_gap_plane']]:.4f} mm, {stats['max_gap_at']}"
         )
     if stats["unchecked_segments"]:
         warnings.append(

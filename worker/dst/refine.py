@@ -222,7 +222,7 @@ class RunRefiner(FaceLimits, RunEnds):
                 # lies between; keep the segment and report it.
                 gap = bad & ((sb - sa) < GAP_SPAN_REL * np.maximum(lengths[ri], 1.0))
                 if gap.any():
-                    self._record_gaps(gap, length, pa, pb, run_z[ri], run_face[ri])
+                    self._record_gaps(gap, length, pa, pb, run_plane[ri], run_face[ri])
                     bad &= ~gap
                 if not bad.any():
                     return split
@@ -658,20 +658,21 @@ class RunRefiner(FaceLimits, RunEnds):
             np.concatenate([ends[again_h, again_i], pb[whole]]),
         )
 
-    def _record_gaps(self, gap, length, pa, pb, z, face) -> None:
-        """Count the segments ``gap`` (kept over budget: no exact point between their ends), and keep
-        them for ``settle_gaps``."""
+    def _record_gaps(self, gap, length, pa, pb, plane, face) -> None:
+        """Count the segments ``gap`` (kept over budget: no exact point between their ends; at plane
+        indices ``plane``), and keep them for ``settle_gaps``."""
         if not gap.any():
             return
         self.stats.tolerance_gaps += int(gap.sum())
         g = int(np.argmax(np.where(gap, length, -1.0)))
         if length[g] > self.stats.max_gap_mm:
-            self.stats.max_gap_mm, self.stats.max_gap_at = (
+            self.stats.max_gap_mm, self.stats.max_gap_plane, self.stats.max_gap_at = (
                 float(length[g]),
-                _gap_place(z[g], face[g], pa[g], pb[g]),
+                int(plane[g]),
+                _gap_place(face[g], pa[g], pb[g]),
             )
         for k in np.flatnonzero(gap).tolist():
-            self._gaps.append((float(length[k]), float(z[k]), int(face[k]), pa[k].tolist(), pb[k].tolist()))
+            self._gaps.append((float(length[k]), int(plane[k]), int(face[k]), pa[k].tolist(), pb[k].tolist()))
 
     def settle_gaps(self, rings: Iterable[Sequence[int]]) -> None:
         """Count again (``tolerance_gaps``, ``max_gap_*``) only the gaps that are segments of the final
@@ -690,8 +691,9 @@ class RunRefiner(FaceLimits, RunEnds):
         self.stats.tolerance_gaps = len(kept)
         worst = max(kept, default=None, key=lambda g: g[0])
         self.stats.max_gap_mm = 0.0 if worst is None else worst[0]
+        self.stats.max_gap_plane = -1 if worst is None else worst[1]
         self.stats.max_gap_at = (
-            "" if worst is None else _gap_place(worst[1], worst[2], *(np.array(worst[k]) for k in (3, 4)))
+            "" if worst is None else _gap_place(worst[2], *(np.array(worst[k]) for k in (3, 4)))
         )
 
     def _d1(
@@ -782,5 +784,6 @@ class RunRefiner(FaceLimits, RunEnds):
         return out, converged, out_uv
 
 
-def _gap_place(z: float, face: int, pa: np.ndarray, pb: np.ndarray) -> str:
-    return f"z={z:.4f} mm, face {face + 1}, from {np.round(pa, 4).tolist()} to {np.round(pb, 4).tolist()}"
+def _gap_place(face: int, pa: np.ndarray, pb: np.ndarray) -> str:
+    """A gap's face and ends in x, y (as the mesh has them; its plane gives z above the bed)."""
+    return f"face {face + 1}, from {np.round(pa[:2], 4).tolist()} to {np.round(pb[:2], 4).tolist()}"

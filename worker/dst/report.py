@@ -28,9 +28,7 @@ from OCP.TopLoc import TopLoc_Location
 from OCP.TopoDS import TopoDS
 
 from worker.dst.baselines import BASELINE_PRESETS, DEFAULT_BASELINES, Preset, parse_baselines
-from worker.dst.deviation import (
-    DENSE_SPACING_MM,
-)
+from worker.dst.deviation import DENSE_SPACING_MM
 from worker.dst.errors import DstError, ResourceLimitExceeded, TessellationError
 from worker.dst.forked import Task, TaskDied, TaskGroup
 from worker.dst.measure import (
@@ -63,6 +61,7 @@ from worker.dst.report_warnings import (
     placement_warnings,
     reference_fault_warning,
     reference_gap_warnings,
+    reference_needle_warning,
     self_crossing_warning,
     unresolved_reference_warning,
 )
@@ -576,6 +575,8 @@ def _build_report(
             )
     if fault := reference_fault_warning(ref.loops, results, planes_z, params.chord_error, chord):
         warnings.append(fault)
+    if needle := reference_needle_warning(ref.loops, results, planes_z, params.chord_error, chord):
+        warnings.append(needle)
     if short := unresolved_reference_warning(ref.unresolved, planes_z, chord):
         warnings.append(short)
     box_lo, box_hi = occt.xy_box

@@ -1,7 +1,8 @@
 """The warnings of a deviation report that need more than a glance at its numbers: a DST ring vertex
 on the B-rep but off the exact reference (a gap of the reference, or a file exact only to its
 tolerances), a DST contour crossing itself, a reference out of order where the meshes deviate most,
-a mesh not watertight or off in volume, a measured mesh not in the part's coordinates.
+a needle of the exact section where DST is over its budget, a mesh not watertight or off in volume,
+a measured mesh not in the part's coordinates.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE
 from OCP.TopExp import TopExp_Explorer
 from OCP.TopoDS import TopoDS, TopoDS_Face
 
-from worker.dst.cuts import cut_mesh, loop_self_crossings
+from worker.dst.cuts import cut_mesh, loop_needles, loop_self_crossings
 from worker.dst.deviation import SegmentSet
 from worker.dst.exact import FaceEval
 from worker.dst.report_schema import MeshReport
@@ -229,6 +230,44 @@ def reference_fault_warning(
         "section but are joined in the wrong order there (a plane grazing a crest or passing near a "
         "saddle, or faces and edges that disagree), so the meshes' chord_dev and perimeter_err at those "
         "planes, and the summaries they set, may measure the reference's fault rather than the meshes'"
+    )
+
+
+def reference_needle_warning(
+    loops: list[list[np.ndarray]],
+    results: list[MeshReport],
+    planes_z: np.ndarray,
+    chord_error: float,
+    resolution: float,
+) -> str | None:
+    """The warning for planes where the DST mesh is over its chord budget and the exact section has
+    a needle longer than that budget (``cuts.loop_needles``, its legs within the reference's
+    ``resolution`` of each other): a spike out and back along itself, or the thin end of a cusp,
+    which encloses no material. The ring need not follow it (bug27453_165-174_piattello turned
+    (129.5, 111.3, 134.0) at z = 38.1: a spike 0.034 mm long on the B-rep, its legs 17 nm apart, and
+    DST's chord_dev there 0.034 mm; trj7_b1-ec-214 turned (-77.1, -176.1, -133.9) at z = 67.1: a face
+    doubling its neighbour within 5 um, and a spike 0.14 mm out and back on it), so DST's chord_dev
+    at such a plane may be the needle's length rather than an error of any printed contour."""
+    dst = next((r for r in results if r.kind == "dst"), None)
+    if dst is None:
+        return None
+    chord_dev = np.array([np.nan if x.chord_dev is None else x.chord_dev for x in dst.layers])
+    over = np.flatnonzero(chord_dev > chord_error + resolution + 1e-6).tolist()
+    found = [
+        (j, length) for j in over for p in loops[j] for length, _ in loop_needles(p, resolution, chord_error)
+    ]
+    if not found:
+        return None
+    j, length = max(found, key=lambda f: f[1])
+    planes = sorted({f[0] for f in found})
+    return (
+        f"the DST mesh is over its {chord_error:g} mm chord budget at {len(planes)} plane(s) where the exact "
+        f"section has a needle longer than that and narrower than {resolution * 1000:g} um (the longest "
+        f"{length:.3g} mm, at z = {planes_z[j]:.4f} mm; plane(s) {', '.join(map(str, planes[:10]))}"
+        f"{', ...' if len(planes) > 10 else ''}): a spike out and back along itself or the thin end of a "
+        "cusp (faces meeting at a tangent, or one doubling another within the file's tolerance), which "
+        "encloses no material and which no slicer prints. A mesh that does not follow it to its tip reads "
+        "up to its length in chord_dev there"
     )
 
 

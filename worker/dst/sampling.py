@@ -123,16 +123,21 @@ class SamplingStats:
     off_trim_crossings: int = 0  # crossings whose root lay beyond their face's trim (see _drop_off_trim)
     off_trim_end_points: int = 0  # points next to a corner beyond their face's trim, dropped
     merged_crossings: int = 0  # crossings at the same point as their loop neighbour (_merge_coincident)
-    max_gap_mm: float = 0.0
-    max_gap_at: str = ""
+    max_gap_mm: float = 0.0  # the longest segment kept over budget (tolerance_gaps) ...
+    max_gap_plane: int = -1  # ... its plane
+    max_gap_at: str = ""  # ... its face and ends (x, y)
 
     def add(self, other: SamplingStats) -> None:
         """Accumulate another sampler's counts (the largest gap, with its place, is kept)."""
         for f in fields(self):
             if f.name == "max_gap_mm":
                 if other.max_gap_mm > self.max_gap_mm:
-                    self.max_gap_mm, self.max_gap_at = other.max_gap_mm, other.max_gap_at
-            elif f.name != "max_gap_at":
+                    self.max_gap_mm, self.max_gap_plane, self.max_gap_at = (
+                        other.max_gap_mm,
+                        other.max_gap_plane,
+                        other.max_gap_at,
+                    )
+            elif f.name not in ("max_gap_plane", "max_gap_at"):
                 setattr(self, f.name, getattr(self, f.name) + getattr(other, f.name))
 
 

@@ -1012,3 +1012,28 @@ def test_corpus_file_turned(path: Path):
     assert per_plane < 3.0 * len(unturned.triangles) / len(unturned.planes)
     _check_against_exact_sections(mesh)
     _check_every_plane(mesh, path, f"{path.name} turned {TURNED[path.name]}")
+
+
+@pytest.mark.slow
+def test_a_plane_where_dst_is_over_budget_beside_a_needle_of_the_section_is_named():
+    """bug27453_165-174_piattello turned (129.5, 111.3, 134.0): at z = 38.1 the exact section has a
+    spike 0.034 mm out and back along itself (its points on the B-rep, its legs under 0.1 um apart),
+    which the DST ring does not follow: DST's chord_dev there is the spike's length, over its
+    budget. The report names that plane and the needle; z = 27.5, over budget across a gap of the
+    B-rep the build names (its warning gives the plane's height above the bed), has no needle and
+    is not named."""
+    path, params = _turned("mechanical/bug27453_165-174_piattello.stp", (129.5, 111.3, 134.0))
+    mesh = slice_step(path, params)
+    report = build_report(mesh.part, params, file_name=path.name, dst=mesh, baselines=())
+    over = {
+        round(layer.z, 4): layer.chord_dev
+        for layer in report.meshes[0].layers
+        if layer.chord_dev is not None
+        and layer.chord_dev > params.chord_error + report.reference.resolution_mm
+    }
+    assert over.keys() == {27.5, 38.1}, over
+    assert over[38.1] == pytest.approx(0.0341, abs=5e-4)
+    (note,) = [w for w in report.warnings if "needle" in w]
+    assert "at 1 plane(s)" in note and "the longest 0.0342 mm, at z = 38.1000 mm" in note, note
+    (gap,) = [w for w in report.warnings if "exceed the segment budget" in w]
+    assert "the longest at z = 27.5000 mm" in gap, gap

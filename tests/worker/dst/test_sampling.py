@@ -454,13 +454,13 @@ def test_only_gaps_left_in_the_final_rings_are_counted(cone_sampler):
     kept, gone = (ring[0], ring[1]), (ring[2], ring[5])  # a ring segment; a chord across the ring
     pa, pb = xyz[[kept[0], gone[0]]], xyz[[kept[1], gone[1]]]
     length = np.linalg.norm(pb - pa, axis=1)
-    sampler._record_gaps(np.array([True, True]), length, pa, pb, np.full(2, Z), np.zeros(2, dtype=int))
+    sampler._record_gaps(np.array([True, True]), length, pa, pb, np.full(2, 3), np.zeros(2, dtype=int))
     assert sampler.stats.tolerance_gaps == 2 and sampler.stats.max_gap_mm == pytest.approx(length[1])
     sampler.settle_gaps([ring])
     assert sampler.stats.tolerance_gaps == 1
     assert sampler.stats.max_gap_mm == pytest.approx(length[0])
-    a, b = (np.round(xyz[v], 4).tolist() for v in kept)
-    assert sampler.stats.max_gap_at == f"z={Z:.4f} mm, face 1, from {a} to {b}"
+    a, b = (np.round(xyz[v, :2], 4).tolist() for v in kept)
+    assert sampler.stats.max_gap_at == f"face 1, from {a} to {b}" and sampler.stats.max_gap_plane == 3
     sampler.settle_gaps([ring[::-1]])  # either way round
     assert sampler.stats.tolerance_gaps == 1
     sampler.settle_gaps([ring[:2] + ring[3:]])
@@ -469,6 +469,7 @@ def test_only_gaps_left_in_the_final_rings_are_counted(cone_sampler):
     assert (
         sampler.stats.tolerance_gaps == 0 and sampler.stats.max_gap_mm == 0.0 and not sampler.stats.max_gap_at
     )
+    assert sampler.stats.max_gap_plane == -1
 
 
 def test_a_point_between_two_others_along_the_section_is_told_from_one_beyond_them(cone_sampler):
