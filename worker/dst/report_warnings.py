@@ -208,8 +208,7 @@ def reference_fault_warning(
         for values in (chord_dev, perimeter):
             ok = np.flatnonzero(np.isfinite(values))
             check.update(ok[np.argsort(-values[ok], kind="stable")[:REFERENCE_CHECK_PLANES]].tolist())
-        if r.kind == "dst":
-            check.update(np.flatnonzero(chord_dev > chord_error + resolution + 1e-6).tolist())
+    check.update(_dst_over_budget(results, chord_error, resolution))
     # thinned to a point per tenth of the budget along each loop: a reference tangled into
     # thousands of points micrometres apart (trj7 at z = 56.9: 7000 at one plane) otherwise takes
     # seconds in the pair search, for pockets within that tenth of their own size
@@ -248,11 +247,7 @@ def reference_needle_warning(
     DST's chord_dev there 0.034 mm; trj7_b1-ec-214 turned (-77.1, -176.1, -133.9) at z = 67.1: a face
     doubling its neighbour within 5 um, and a spike 0.14 mm out and back on it), so DST's chord_dev
     at such a plane may be the needle's length rather than an error of any printed contour."""
-    dst = next((r for r in results if r.kind == "dst"), None)
-    if dst is None:
-        return None
-    chord_dev = np.array([np.nan if x.chord_dev is None else x.chord_dev for x in dst.layers])
-    over = np.flatnonzero(chord_dev > chord_error + resolution + 1e-6).tolist()
+    over = _dst_over_budget(results, chord_error, resolution)
     found = [
         (j, length) for j in over for p in loops[j] for length, _ in loop_needles(p, resolution, chord_error)
     ]
@@ -269,6 +264,17 @@ def reference_needle_warning(
         "encloses no material and which no slicer prints. A mesh that does not follow it to its tip reads "
         "up to its length in chord_dev there"
     )
+
+
+def _dst_over_budget(results: list[MeshReport], chord_error: float, resolution: float) -> list[int]:
+    """The planes where the DST mesh's chord_dev is over its budget by more than the reference's
+    resolution (none without a DST mesh)."""
+    out: list[int] = []
+    for r in results:
+        if r.kind == "dst":
+            chord_dev = np.array([np.nan if x.chord_dev is None else x.chord_dev for x in r.layers])
+            out += np.flatnonzero(chord_dev > chord_error + resolution + 1e-6).tolist()
+    return out
 
 
 def unresolved_reference_warning(
