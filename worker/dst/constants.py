@@ -27,6 +27,7 @@ TOPO_ANGULAR_RAD = 0.35  # ~20 deg: keeps curved faces resolved where the linear
 # a solid whose BRepMesh mesh fails (a face unmeshed, the mesh not closed) is meshed again this much
 # finer, in turn, until one holds (BRepMesh's failures can come and go with the deflection alone)
 TOPO_RETRY_FINER = (0.7, 0.5)
+POLE_TOL_MM = 1e-7  # a side of a face's (u, v) box whose iso-line is this short is a pole (an apex)
 MERGE_TOL_REL = 1e-9  # of the bbox diagonal: nodes of different faces closer than this are one node
 T_JUNCTION_TOL_MM = 1e-7  # a vertex this near an open edge of the DST mesh is a T-junction on it
 

@@ -18,12 +18,11 @@ from OCP.GeomAbs import GeomAbs_C1
 from OCP.gp import gp_Pnt, gp_Vec
 
 from worker.dst.chords import CHORD_FILL, chord_position, point_segment_distance
-from worker.dst.constants import LEVEL_TOL_MM, NEWTON_MAX_ITER
+from worker.dst.constants import LEVEL_TOL_MM, NEWTON_MAX_ITER, POLE_TOL_MM
 from worker.dst.runs import Run
 
 TRIM_TOL_MM = 1e-6
 TRIM_ENTRY_TOL_MM = 1e-5  # where a section crosses its face's trim: found to this (``_into_trim``)
-POLE_TOL_MM = 1e-7  # an iso-line this short is a pole of its face's parametrisation
 # C0 lines of a face this close to its (u, v) box's sides are its edges' business (relative to the box)
 KINK_MARGIN_REL = 1e-9
 KINK_MIN_SPACING_REL = 1e-9  # a kink this close to a run's end (relative to its length) is that end

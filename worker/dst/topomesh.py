@@ -40,6 +40,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from worker.dst.constants import POLE_TOL_MM
 from worker.dst.errors import TessellationError, UnmeshedFaceError
 from worker.dst.exact import EdgeEval, FaceEval
 from worker.dst.meshops import edge_defects, open_edges, repeated_corner, signed_volume
@@ -196,6 +197,7 @@ def build_topomesh(
     if signed_volume(xyz, tris) < 0:
         tris = tris[:, ::-1].copy()
         tri_uv = tri_uv[:, ::-1].copy()
+    _wedge_poles(tri_uv, tri_face, faces)
     return TopoMesh(
         xyz=xyz,
         tris=tris,
@@ -213,6 +215,41 @@ def build_topomesh(
 
 
 FaceMesh = tuple[np.ndarray, np.ndarray, np.ndarray]  # (n, 3) xyz, (n, 2) uv, (m, 3) triangles
+
+
+def _wedge_poles(tri_uv: np.ndarray, tri_face: np.ndarray, faces: list[FaceEval]) -> None:
+    """Give each triangle's corner at a pole of its face's parametrisation (a side of the face's
+    (u, v) box whose iso-line is one point: the apex of a cap of revolution) the mean of the
+    triangle's other two corners in the parameter that is arbitrary there (in place). BRepMesh gives
+    a pole node one fixed value for all its triangles (u = 0 or 2 pi at an apex), so a point
+    interpolated along a fan triangle's edge from the apex, a crossing's root or a seed, lay at the
+    wrong angle round the apex: bug27453_165-174_piattello turned (-171.8, -177.1, -119.4) at z =
+    27.1, a plane 0.01 mm below the apex of a cap, had the 21 crossings of the fan round it on a
+    12-degree arc of the section's 0.036 mm circle, and the ring a sliver along that arc."""
+    for f in np.unique(tri_face).tolist():
+        fe = faces[f]
+        box = (fe.u0, fe.u1, fe.v0, fe.v1)
+        sel = None
+        for axis in (0, 1):
+            lo, hi = box[2 * axis], box[2 * axis + 1]
+            if not (np.isfinite(lo) and np.isfinite(hi)):
+                continue
+            olo, ohi = box[2 * (1 - axis)], box[2 * (1 - axis) + 1]
+            tol = 1e-9 * max(hi - lo, 1.0)
+            for bound in (lo, hi):
+                iso = [(bound, w) if axis == 0 else (w, bound) for w in (olo, 0.5 * (olo + ohi), ohi)]
+                pts = np.array([fe.point(*uv) for uv in iso])
+                if np.linalg.norm(pts - pts[0], axis=1).max() >= POLE_TOL_MM:
+                    continue
+                if sel is None:
+                    sel = np.flatnonzero(tri_face == f)
+                at = np.abs(tri_uv[sel, :, axis] - bound) <= tol  # (k, 3) corners on the pole
+                one = np.flatnonzero(at.sum(axis=1) == 1)
+                if not len(one):
+                    continue
+                t, c = sel[one], np.argmax(at[one], axis=1)
+                other = tri_uv[t, :, 1 - axis].sum(axis=1) - tri_uv[t, c, 1 - axis]
+                tri_uv[t, c, 1 - axis] = 0.5 * other
 
 
 def read_triangulations(

@@ -1037,3 +1037,16 @@ def test_a_plane_where_dst_is_over_budget_beside_a_needle_of_the_section_is_name
     assert "at 1 plane(s)" in note and "the longest 0.0342 mm, at z = 38.1000 mm" in note, note
     (gap,) = [w for w in report.warnings if "exceed the segment budget" in w]
     assert "the longest at z = 27.5000 mm" in gap, gap
+
+
+@pytest.mark.slow
+def test_a_caps_ring_just_below_its_apex_goes_round_it():
+    """bug27453_165-174_piattello turned (-171.8, -177.1, -119.4): at z = 27.1 the plane passes
+    0.01 mm below the apex of a cap of revolution (face 242), a section circle 0.036 mm across that
+    cuts only the fan of topology triangles round the apex. The crossings of that fan were solved
+    along (u, v) edges from the apex's one fixed u and all landed on a 12-degree arc: the ring was
+    a sliver along it, 0.0357 mm from the far side of the circle. Every exact point is now within
+    the budget (``topomesh._wedge_poles``)."""
+    path, params = _turned("mechanical/bug27453_165-174_piattello.stp", (-171.8, -177.1, -119.4))
+    mesh = slice_step(path, params)
+    _assert_planes_within_budget(mesh, 27.1)

@@ -124,6 +124,27 @@ def test_cone_rings_follow_the_linear_radius(make_step):
     np.testing.assert_array_less(np.abs(np.hypot(v[:, 0], v[:, 1]) - 10.0 * (1 - zs / 20.0)), EXACT_TOL)
 
 
+def test_a_ring_round_an_apex_goes_round_it_where_the_fan_of_triangles_there_is_cut(make_step):
+    """The cone's top plane 5 um below its apex (first layer 0.095 mm: z = 19.995, a circle of
+    radius 0.0025 mm) cuts only the fan of topology triangles round the apex, whose crossings the
+    ring keeps (a cap: a pinned loop). BRepMesh gives the apex, a pole of the cone's (u, v), one u
+    for all its triangles; the crossings' roots sought along the (u, v) edges from it lay at the
+    wrong angles, all on one arc: the ring enclosed 4% of the circle. The pole corners now take
+    their triangle's own u (``topomesh._wedge_poles``): the ring goes round the apex."""
+    m = slice_step(
+        make_step("cone", radius=10.0, height=20.0), SliceParams(layer_height=0.2, first_layer_height=0.095)
+    )
+    j = len(m.planes.z) - 1
+    z = m.planes.section_z[j]
+    assert z == pytest.approx(19.995, abs=1e-5) and m.stats["kept_components"] >= 1  # (a float32 plane)
+    r = 10.0 * (1.0 - z / 20.0)
+    p = m.vertices[m.vertex_plane == j, :2]
+    assert np.abs(np.linalg.norm(p, axis=1) - r).max() < 1e-9  # each vertex on the exact circle
+    p = p[np.argsort(np.arctan2(p[:, 1], p[:, 0]))]
+    area = 0.5 * abs(np.sum(p[:, 0] * np.roll(p[:, 1], -1) - np.roll(p[:, 0], -1) * p[:, 1]))
+    assert area > 0.8 * math.pi * r * r, (len(p), area / (math.pi * r * r))
+
+
 def test_a_lens_whose_arcs_each_sag_within_the_chord_budget_keeps_both_arcs(make_step):
     """A prism whose section is a lens between two cylinders (R 11.45, each arc sagging 0.4 mm from
     the 6 mm chord between the lens's two corners), at 10 mm segments and a 0.5 mm chord: each arc
