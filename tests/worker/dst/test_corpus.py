@@ -91,13 +91,11 @@ KNOWN_PLANE_DEVIATIONS: dict[str, str] = {
 REFERENCE_GAPS: dict[str, str] = {}
 # Cases whose report's reference is out of order at a plane of the meshes' largest deviations (z of
 # the largest pocket, mm): the report names it. trj7: edges with tolerances up to 0.3 mm (a pocket of
-# 94 mm^2); bug27453: 3500 points within 0.24 mm at z = 37.1 and at z = 36.9, planes 184 and 185
-# (pockets of 0.005 mm^2 at 36.9, 0.007 at 37.1 before the reference's halving of session 28 left
-# other points there; 0.0045 at 37.1, the larger of the two, since session 36's sampling changes:
-# gap samples, trim entry points).
+# 94 mm^2). (bug27453 had 3500 points within 0.24 mm at z = 37.1 and 36.9, pockets of 0.0045-0.007
+# mm^2, until its topology meshes' pole corners took their triangles' own u in session 38:
+# ``topomesh._wedge_poles``.)
 KNOWN_REFERENCE_FAULTS: dict[str, float] = {
     "trj7_b1-ec-214.stp": 56.9,
-    "bug27453_165-174_piattello.stp": 37.1,
 }
 
 
