@@ -885,13 +885,16 @@ def test_a_small_cap_whose_crossing_was_walked_past_its_neighbour_is_right_witho
 
 @pytest.mark.slow
 @pytest.mark.parametrize("turn", [(-71.7, 8.5, -112.9), (52.3, 4.7, 130.6)])
-def test_crossings_at_one_point_are_one_vertex_of_the_ring_and_of_the_triangles_beside_it(turn):
+def test_crossings_at_one_point_are_one_vertex_of_the_ring_and_of_the_triangles_beside_it(turn, monkeypatch):
     """bug29241 turned (-71.7, 8.5, -112.9) at z = 372.3 (and (52.3, 4.7, 130.6) at 293.5 and 293.9):
     the section passes 1e-10 mm from where two topology edges of one triangle cross the plane. The
     ring dropped one of the two points as a repeat, the kept triangles on both sides used both, and
     the build failed its own mesh check (3 and 6 open edges). Such crossings now share one vertex
     (``RingSampler._merge_coincident``). Coarse segments (the crossings, and so the case, are those
     of the default settings) keep the build at ~25 s."""
+    # (with the topology mesh's pole corners as BRepMesh gives them: since they are wedged,
+    # ``topomesh._wedge_poles``, the first turn's crossings no longer meet at one point)
+    monkeypatch.setattr("worker.dst.topomesh._wedge_poles", lambda *args: None)
     path, params = _turned("mechanical/bug29241.stp", turn)
     params = params.model_copy(update={"segment_length": 5.0, "chord_error": 0.1})
     mesh = slice_step(path, params)  # raises TessellationError where the mesh check fails
@@ -1023,9 +1026,8 @@ def test_a_plane_where_dst_is_over_budget_beside_a_needle_of_the_section_is_name
     """bug27453_165-174_piattello turned (129.5, 111.3, 134.0): at z = 38.1 the exact section has a
     spike 0.034 mm out and back along itself (its points on the B-rep, its legs under 0.1 um apart),
     which the DST ring does not follow: DST's chord_dev there is the spike's length, over its
-    budget. The report names that plane and the needle; z = 27.5, over budget across a gap of the
-    B-rep the build names (its warning gives the plane's height above the bed), has no needle and
-    is not named."""
+    budget. The report names that plane and the needle, and no other (z = 27.5, over budget across a
+    gap until the pole fix, had no needle)."""
     path, params = _turned("mechanical/bug27453_165-174_piattello.stp", (129.5, 111.3, 134.0))
     mesh = slice_step(path, params)
     report = build_report(mesh.part, params, file_name=path.name, dst=mesh, baselines=())
@@ -1035,12 +1037,10 @@ def test_a_plane_where_dst_is_over_budget_beside_a_needle_of_the_section_is_name
         if layer.chord_dev is not None
         and layer.chord_dev > params.chord_error + report.reference.resolution_mm
     }
-    assert over.keys() == {27.5, 38.1}, over
+    assert over.keys() == {38.1}, over  # (27.5, over across a gap, is within budget since the pole fix)
     assert over[38.1] == pytest.approx(0.0341, abs=5e-4)
     (note,) = [w for w in report.warnings if "needle" in w]
     assert "at 1 plane(s)" in note and "the longest 0.0342 mm, at z = 38.1000 mm" in note, note
-    (gap,) = [w for w in report.warnings if "exceed the segment budget" in w]
-    assert "the longest at z = 27.5000 mm" in gap, gap
 
 
 @pytest.mark.slow
