@@ -30,7 +30,7 @@ from OCP.TopAbs import TopAbs_IN, TopAbs_ON, TopAbs_REVERSED
 from scipy.optimize import brentq, minimize_scalar
 
 from worker.dst.analytic import Evaluator, evaluator
-from worker.dst.constants import ROOT_XTOL
+from worker.dst.constants import POLE_TOL_MM, ROOT_XTOL
 
 # a walk along a section curve stops this close (mm, along the curve) to the point nearest its target
 WALK_TOL_MM = 1e-7
@@ -81,6 +81,7 @@ class FaceEval:
         "_sas",
         "_fclass",
         "_batch",
+        "_poles",
     )
 
     def __init__(self, adaptor: BRepAdaptor_Surface):
@@ -102,6 +103,7 @@ class FaceEval:
         self._sas = None
         self._fclass: dict[float, IntTools_FClass2d] = {}
         self._batch: Evaluator | None | bool = False  # not built yet
+        self._poles: dict[tuple[int, float], bool] = {}
 
     @property
     def batch(self) -> Evaluator | None:
@@ -193,6 +195,20 @@ class FaceEval:
     def point(self, u: float, v: float) -> tuple[float, float, float]:
         p = self.ad.Value(u, v)
         return p.X(), p.Y(), p.Z()
+
+    def is_pole(self, axis: int, bound: float) -> bool:
+        """Is the iso-line at ``bound`` of parameter ``axis`` (0: u, 1: v), across the face's (u, v)
+        box, one point of the surface (a pole: the apex of a cap of revolution)? Three points along
+        it, at the box's ends and middle, within ``POLE_TOL_MM`` of each other (kept per side)."""
+        key = (axis, bound)
+        if (known := self._poles.get(key)) is not None:
+            return known
+        lo, hi = (self.v0, self.v1) if axis == 0 else (self.u0, self.u1)
+        pts = np.array(
+            [self.point(*((bound, w) if axis == 0 else (w, bound))) for w in (lo, 0.5 * (lo + hi), hi)]
+        )
+        self._poles[key] = pole = bool(np.linalg.norm(pts - pts[0], axis=1).max() < POLE_TOL_MM)
+        return pole
 
     def z_and_grad(self, u: float, v: float) -> tuple[float, float, float]:
         """z(u, v) and its partial derivatives (for minimising the height over the face)."""

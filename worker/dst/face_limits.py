@@ -18,7 +18,7 @@ from OCP.GeomAbs import GeomAbs_C1
 from OCP.gp import gp_Pnt, gp_Vec
 
 from worker.dst.chords import CHORD_FILL, chord_position, point_segment_distance
-from worker.dst.constants import LEVEL_TOL_MM, NEWTON_MAX_ITER, POLE_TOL_MM
+from worker.dst.constants import LEVEL_TOL_MM, NEWTON_MAX_ITER
 from worker.dst.runs import Run
 
 TRIM_TOL_MM = 1e-6
@@ -178,7 +178,7 @@ class FaceLimits:
     ) -> np.ndarray:
         """Mask over ``out`` (points beyond their face's (u, v) box, in ``ri``, ``xyz``, ``uv`` sorted
         by run and arc length) of those solved again (in place) on the face: where the box's edge
-        they lie beyond is a pole of the face's parametrisation (``_is_pole``) and the segment
+        they lie beyond is a pole of the face's parametrisation (``FaceEval.is_pole``) and the segment
         joining the points either side of them would pass farther than the chord budget from them,
         from their parameters mirrored through the pole (``_through_pole``). Dropped, such a point
         left a chord across the tip of a section round the apex of a cap (bug27453_165-174_piattello
@@ -213,7 +213,7 @@ class FaceLimits:
             axis = int(axes[0])
             box = self._uv_box[run.face]
             bound = float(box[2 * axis] if below[axis] else box[2 * axis + 1])
-            if not self._is_pole(run.face, axis, bound):
+            if not self.mesh.faces[run.face].is_pole(axis, bound):
                 continue
             hit = self._through_pole(run, axis, bound, uv[k], xyz[k])
             if hit is None or not self.mesh.faces[run.face].contains(*hit[0].tolist(), tol=TRIM_TOL_MM):
@@ -222,19 +222,6 @@ class FaceLimits:
             moved[m] = True
         self.stats.pole_points += int(moved.sum())
         return moved
-
-    def _is_pole(self, f: int, axis: int, bound: float) -> bool:
-        """Is the iso-line at ``bound`` of face ``f``'s parameter ``axis`` (0: u, 1: v) one point of
-        its surface (a pole: the apex of a cap of revolution)?"""
-        box = self._uv_box[f]
-        lo, hi = box[2 * (1 - axis)], box[2 * (1 - axis) + 1]
-        p = gp_Pnt()
-        pts = []
-        for w in (lo, 0.5 * (lo + hi), hi):
-            self._ads[f].D0(*((bound, w) if axis == 0 else (w, bound)), p)
-            pts.append(p.Coord())
-        pts = np.array(pts)
-        return bool(np.linalg.norm(pts - pts[0], axis=1).max() < POLE_TOL_MM)
 
     def _through_pole(
         self, run: Run, axis: int, bound: float, uv: np.ndarray, xyz: np.ndarray

@@ -40,7 +40,6 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from worker.dst.constants import POLE_TOL_MM
 from worker.dst.errors import TessellationError, UnmeshedFaceError
 from worker.dst.exact import EdgeEval, FaceEval
 from worker.dst.meshops import edge_defects, open_edges, repeated_corner, signed_volume
@@ -234,12 +233,9 @@ def _wedge_poles(tri_uv: np.ndarray, tri_face: np.ndarray, faces: list[FaceEval]
             lo, hi = box[2 * axis], box[2 * axis + 1]
             if not (np.isfinite(lo) and np.isfinite(hi)):
                 continue
-            olo, ohi = box[2 * (1 - axis)], box[2 * (1 - axis) + 1]
             tol = 1e-9 * max(hi - lo, 1.0)
             for bound in (lo, hi):
-                iso = [(bound, w) if axis == 0 else (w, bound) for w in (olo, 0.5 * (olo + ohi), ohi)]
-                pts = np.array([fe.point(*uv) for uv in iso])
-                if np.linalg.norm(pts - pts[0], axis=1).max() >= POLE_TOL_MM:
+                if not fe.is_pole(axis, bound):
                     continue
                 if sel is None:
                     sel = np.flatnonzero(tri_face == f)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from OCP.BRepAdaptor import BRepAdaptor_Surface
 from OCP.BRepBuilderAPI import BRepBuilderAPI_NurbsConvert
-from OCP.GeomAbs import GeomAbs_BSplineSurface, GeomAbs_Sphere, GeomAbs_Torus
+from OCP.GeomAbs import GeomAbs_BSplineSurface, GeomAbs_Cone, GeomAbs_Sphere, GeomAbs_Torus
 from OCP.TopAbs import TopAbs_FACE
 from OCP.TopExp import TopExp_Explorer
 from OCP.TopoDS import TopoDS
@@ -115,3 +115,36 @@ def test_a_walk_along_a_section_arrives_unless_it_passes_a_point_to_avoid():
         assert ev.point(u, v)[2] == pytest.approx(c, abs=1e-9)
     with pytest.raises(ExactFailure, match="passed a point to avoid"):
         ev.walk_level(u0, v0, c, at(60.0), avoid=[at(30.0)], **kw)
+
+
+@pytest.mark.parametrize(
+    ("kind", "poles"),
+    [
+        ("sphere", {(1, -0.5 * math.pi), (1, 0.5 * math.pi)}),
+        ("bspline", {(1, -0.5 * math.pi), (1, 0.5 * math.pi)}),
+        ("torus", set()),
+        ("cone", {"apex"}),
+        ("frustum", set()),
+    ],
+)
+def test_a_side_of_the_parameter_box_is_a_pole_only_where_its_iso_line_is_one_point(kind, poles):
+    """The sides of a face's (u, v) box that are poles: a sphere's (exact or B-spline) two ends in v,
+    a cone's apex (the side where its iso-circle's radius is zero); none on a torus, nor on a frustum
+    whose top circle is only 0.2 um across (an iso-line 0.6 um long is not one point)."""
+    import build123d as bd
+
+    if kind in ("cone", "frustum"):
+        (ev,) = [
+            f
+            for f in _faces(bd.Cone(10.0, 0.0 if kind == "cone" else 1e-4, 20.0).wrapped)
+            if f.ad.GetType() == GeomAbs_Cone
+        ]
+    else:
+        ev = _curved(kind)
+    sides = [(0, ev.u0), (0, ev.u1), (1, ev.v0), (1, ev.v1)]
+    if poles == {"apex"}:  # the side of the box whose point at u = 0 lies on the cone's axis
+        poles = {s for s in sides if s[0] == 1 and math.hypot(*ev.point(0.0, s[1])[:2]) < 1e-9}
+        assert len(poles) == 1
+    got = [side for side in sides if ev.is_pole(*side)]
+    assert sorted((a, round(b, 9)) for a, b in got) == sorted((a, round(b, 9)) for a, b in poles)
+    assert [side for side in sides if ev.is_pole(*side)] == got  # the same answer, kept
