@@ -8,6 +8,10 @@ corpus test at its turn and plane. A turn is printed as the three angles that
 ``dst slice --rotate-x/-y/-z`` (or ``SliceParams.rotate_*``) take, so a finding can be rebuilt alone.
 
     python benchmarks/scan_turns.py --seed 3704 --turns 2 bug24595_281390.stp boxed_sphere.step
+    python benchmarks/scan_turns.py --seed 3903 --chord-error 0.005 --segment-length 0.4 r103ec.stp
+
+The slicing settings default to the corpus tests' own for each part; given, they replace those (a
+finding is then rebuilt with the same options).
 
 Needs the shared corpus beside the checkout (``../shared/corpus``). Exits 1 if any turn is over budget
 or fails to build with an unexpected error. A turn over budget only at points on needles of the
@@ -33,6 +37,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("parts", nargs="+", help="corpus file names (e.g. boxed_sphere.step)")
     ap.add_argument("--seed", type=int, required=True, help="seed of the turns (report it with a finding)")
     ap.add_argument("--turns", type=int, default=1, help="random turns per part")
+    # the slicing settings, each as ``dst slice`` takes it (default: the corpus tests' own per part)
+    ap.add_argument("--layer-height", type=float)
+    ap.add_argument("--first-layer-height", type=float)
+    ap.add_argument("--mode", choices=["middle", "inclusive", "exclusive"])
+    ap.add_argument("--segment-length", type=float)
+    ap.add_argument("--chord-error", type=float)
+    ap.add_argument("--target-slicer")
     args = ap.parse_args(argv)
 
     from tests.conftest import CORPUS
@@ -42,32 +53,50 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     from tests.worker.dst.test_corpus import FILES, _exact_points_from_ring, _params
     from worker.dst.errors import DstError
-    from worker.dst.params import ROTATION_FIELDS
+    from worker.dst.params import ROTATION_FIELDS, SliceParams
     from worker.dst.pipeline import slice_step
+    from worker.dst.report import _exact_reference
 
     by_name = {p.name: p for p in FILES}
     unknown = [n for n in args.parts if n not in by_name]
     if unknown:
         print(f"not in the corpus list: {', '.join(unknown)}", file=sys.stderr)
         return 2
+    settings = {
+        k: getattr(args, k)
+        for k in (
+            "layer_height",
+            "first_layer_height",
+            "mode",
+            "segment_length",
+            "chord_error",
+            "target_slicer",
+        )
+        if getattr(args, k) is not None
+    }
+    if settings:
+        print("settings: " + ", ".join(f"{k} {v}" for k, v in settings.items()), flush=True)
     rng = np.random.default_rng(args.seed)
     failed = 0
     for name in args.parts:
         path = by_name[name]
         for _ in range(args.turns):
             turn = tuple(float(a) for a in np.round(rng.uniform(-180.0, 180.0, 3), 1))
-            params = _params(path).model_copy(update=dict(zip(ROTATION_FIELDS, turn, strict=True)))
+            given = _params(path).model_dump(exclude_defaults=True) | settings
+            params = SliceParams.parse(**given, **dict(zip(ROTATION_FIELDS, turn, strict=True)))
             t = time.perf_counter()
             try:
                 mesh = slice_step(path, params)
             except DstError as exc:  # refused files (not a solid, resource limits) are reported, not counted
                 print(f"{name} {turn} refused ({exc.code}): {str(exc)[:160]}", flush=True)
                 continue
-            d, plane, pts = _exact_points_from_ring(mesh, mesh.planes.section_z)
+            heights = mesh.planes.section_z
+            ref = _exact_reference(mesh.part, mesh.params, heights, helper=False).sections
+            d, plane, pts = _exact_points_from_ring(mesh, heights, ref)
             k = int(np.argmax(d))
             over = d[k] > params.chord_error + 1e-6
             verdict = "OVER" if over else "ok"
-            if over and _on_needles(mesh, d, plane, pts):
+            if over and _on_needles(mesh, ref, d, plane, pts):
                 verdict, over = "ok but for needles of the section", False
             failed += over
             print(
@@ -79,19 +108,20 @@ def main(argv: list[str] | None = None) -> int:
     return 1 if failed else 0
 
 
-def _on_needles(mesh, d: np.ndarray, plane: np.ndarray, pts: np.ndarray) -> bool:
+def _on_needles(mesh, ref, d: np.ndarray, plane: np.ndarray, pts: np.ndarray) -> bool:
     """Whether every exact point over the chord budget lies on a needle of its plane's section
     (``cuts.loop_needles``: a spike out and back along itself, or the thin end of a cusp, under the
     reference's resolution wide, which encloses no material; the report names such planes): within
-    a needle's length of its tip."""
+    a needle's length of its tip. ``ref``: the reference the points came from, made at every plane
+    as the report makes it (a needle's tip is ill-conditioned, its legs under 1 um apart: a
+    reference made at fewer planes samples it otherwise, ``bug27453`` turned (-176.6, 27.2, 113.3)
+    at chord_error 0.005 mm, z = 56.9, a 7.3 um needle there and 1.6 um at that plane alone)."""
     from worker.dst.cuts import loop_needles
-    from worker.dst.report import _exact_reference
 
     over = d > mesh.params.chord_error + 1e-6
     js = np.unique(plane[over])
-    ref = _exact_reference(mesh.part, mesh.params, mesh.planes.section_z[js], helper=False).sections
-    for i, j in enumerate(js.tolist()):
-        needles = [n for p in ref.loops[i] for n in loop_needles(p, ref.chord, mesh.params.chord_error)]
+    for j in js.tolist():
+        needles = [n for p in ref.loops[j] for n in loop_needles(p, ref.chord, mesh.params.chord_error)]
         for q in pts[over & (plane == j)]:
             if not any(np.linalg.norm(q - tip) <= length + ref.chord for length, tip in needles):
                 return False

@@ -28,6 +28,10 @@ TOPO_ANGULAR_RAD = 0.35  # ~20 deg: keeps curved faces resolved where the linear
 # finer, in turn, until one holds (BRepMesh's failures can come and go with the deflection alone)
 TOPO_RETRY_FINER = (0.7, 0.5)
 POLE_TOL_MM = 1e-7  # a side of a face's (u, v) box whose iso-line is this short is a pole (an apex)
+# ring points closer than this in x, y and z are one (a ring drops the repeat: ``sampling._dedupe_cyclic``;
+# a run's samples drop theirs: ``RunRefiner._sample_runs``; a pinned loop's crossings that close share
+# their vertex first: ``Crossings._merge_coincident``)
+REPEAT_MM = 1e-9
 MERGE_TOL_REL = 1e-9  # of the bbox diagonal: nodes of different faces closer than this are one node
 T_JUNCTION_TOL_MM = 1e-7  # a vertex this near an open edge of the DST mesh is a T-junction on it
 

@@ -30,7 +30,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from worker.dst.constants import MIN_LOOP_VERTICES, SEGMENT_FILL
+from worker.dst.constants import MIN_LOOP_VERTICES, REPEAT_MM, SEGMENT_FILL
 from worker.dst.crossings import Crossings
 from worker.dst.errors import TessellationError
 from worker.dst.exact import ExactFailure
@@ -40,10 +40,6 @@ from worker.dst.runs import SUSPECT_DEFLECTIONS, Run
 from worker.dst.sections import SectionTopology
 from worker.dst.topomesh import TopoMesh
 from worker.dst.traces import EXCURSION_MAX_TRACE_MM, Traces
-
-# ring points closer than this in x, y and z are one (a ring drops the repeat: ``_dedupe_cyclic``; a
-# pinned loop's crossings that close share their vertex first: ``_merge_coincident``)
-REPEAT_MM = 1e-9
 
 
 class VertexPool:
@@ -123,6 +119,7 @@ class SamplingStats:
     off_trim_crossings: int = 0  # crossings whose root lay beyond their face's trim (see _drop_off_trim)
     off_trim_end_points: int = 0  # points next to a corner beyond their face's trim, dropped
     merged_crossings: int = 0  # crossings at the same point as their loop neighbour (_merge_coincident)
+    repeat_samples: int = 0  # a run's samples at the same point as the one before or its end (dropped)
     max_gap_mm: float = 0.0  # the longest segment kept over budget (tolerance_gaps) ...
     max_gap_plane: int = -1  # ... its plane
     max_gap_at: str = ""  # ... its face and ends (x, y)

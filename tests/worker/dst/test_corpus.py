@@ -458,16 +458,18 @@ def test_report_reference_follows_the_curve_where_its_crossings_come_out_of_orde
     assert not [w for w in report.warnings if "reference misses part of the section" in w], report.warnings
 
 
-def _exact_points_from_ring(mesh, heights: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _exact_points_from_ring(mesh, heights: np.ndarray, ref=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Every exact point of the report's reference at ``heights`` (above the part's lowest point),
     its distance from the DST mesh's cut there (its STL's float32 vertices, placed as a slicer
-    places them) and the index of its plane among ``heights``: (distances, planes, points)."""
+    places them) and the index of its plane among ``heights``: (distances, planes, points).
+    ``ref``: that reference's ``ExactSections`` if already made (else made here)."""
     from worker.dst.cuts import cut_mesh
     from worker.dst.deviation import SegmentSet
     from worker.dst.measure import MeshInput, on_bed
     from worker.dst.report import _exact_reference
 
-    ref = _exact_reference(mesh.part, mesh.params, heights, helper=False).sections
+    if ref is None:
+        ref = _exact_reference(mesh.part, mesh.params, heights, helper=False).sections
     v, tr = on_bed(MeshInput("dst", "dst", mesh.vertices32, mesh.triangles, None, ""))
     cut = cut_mesh(v, tr, heights)
     pts = np.concatenate([p for ls in ref.loops for p in ls])
@@ -901,6 +903,24 @@ def test_crossings_at_one_point_are_one_vertex_of_the_ring_and_of_the_triangles_
     assert mesh.stats["merged_crossings"] >= 1
     assert_watertight(mesh)
     assert_slab_property(mesh)
+
+
+@pytest.mark.slow
+def test_samples_of_a_run_at_one_point_are_one_vertex_of_the_ring_and_of_the_triangles_beside_it():
+    """bug27453_165-174 turned (22.6, 52.9, -123.0) at chord_error 0.005 mm, z = 20.3: the section
+    round a dimple 31 um deep, a curve a few micrometres across, is one pinned segment sampled to
+    191 points, two pairs of them 0.4 nm and 8 pm apart. The ring dropped one of each pair as a
+    repeat, the kept triangles of the dimple's cap used both, and the build failed its own mesh
+    check (6 open edges). A run's samples now drop such repeats before anything uses them
+    (``RunRefiner._without_repeats``). (Found by ``scan_turns.py --seed 3903 --chord-error 0.005
+    --segment-length 0.4``; the default 0.8 mm segments show it too.)"""
+    path, params = _turned("mechanical/bug27453_165-174_piattello.stp", (22.6, 52.9, -123.0))
+    params = params.model_copy(update={"chord_error": 0.005})
+    mesh = slice_step(path, params)  # raises TessellationError where the mesh check fails
+    assert mesh.stats["repeat_samples"] >= 2
+    assert_watertight(mesh)
+    assert_slab_property(mesh)
+    _assert_planes_within_budget(mesh, 20.3)
 
 
 def test_a_stretch_of_crossings_off_the_trim_collapses_onto_its_two_ends_in_order():

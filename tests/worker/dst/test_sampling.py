@@ -676,3 +676,34 @@ def test_a_corner_whose_faces_curve_runs_on_past_the_trim_joins_it_where_it_ente
         axis=0,
     )
     assert d.max() <= s.chord + 1e-9
+
+
+def test_a_runs_samples_at_one_point_are_dropped_against_the_point_kept_before_and_the_runs_end():
+    """``RunRefiner._without_repeats``: an inner sample within 1 nm (in x, y and z) of the sample
+    kept before it, or of the run's end, is dropped (and counted), whatever the ids; the run's two
+    ends stay; a run without repeats is returned as it is."""
+    from types import SimpleNamespace
+
+    from worker.dst.refine import RunRefiner
+    from worker.dst.sampling import SamplingStats
+
+    pool = VertexPool()
+    x = [
+        0.0,
+        1.0,
+        1.0 + 4e-10,
+        1.0 + 8e-10,
+        2.0,
+        3.0 - 3e-10,
+        3.0,
+    ]  # (a chain of repeats: each near the last kept)
+    ids = [pool.add((xi, 0.5, 7.0), 0) for xi in x]
+    far = [pool.add((xi, 0.5, 7.0), 0) for xi in (10.0, 11.0, 12.0)]
+    host = SimpleNamespace(pool=pool, stats=SamplingStats())
+    out = RunRefiner._without_repeats(host, [ids, far])
+    assert out == [[ids[0], ids[1], ids[4], ids[6]], far]
+    assert host.stats.repeat_samples == 3
+    # 2 nm apart in x and 0 in y, z: not a repeat (the test is per coordinate)
+    apart = [pool.add((xi, 0.5, 7.0), 0) for xi in (20.0, 20.0 + 2e-9, 21.0)]
+    assert RunRefiner._without_repeats(host, [apart]) == [apart]
+    assert RunRefiner._without_repeats(host, [[]]) == [[]]
