@@ -57,6 +57,7 @@ from worker.dst.planes import plan_planes
 from worker.dst.reference import ExactSections, closed_length, exact_sections
 from worker.dst.report_schema import InputInfo, ReferenceInfo, Report
 from worker.dst.report_warnings import (
+    edge_tolerance_warning,
     mesh_warnings,
     placement_warnings,
     reference_fault_warning,
@@ -577,6 +578,21 @@ def _build_report(
         warnings.append(fault)
     if needle := reference_needle_warning(ref.loops, results, planes_z, params.chord_error, chord):
         warnings.append(needle)
+    for m in todo:
+        if m.kind == "dst" and (
+            loose := edge_tolerance_warning(
+                part,
+                placed[id(m)],
+                results,
+                ref.loops,
+                heights,
+                ref.zmin,
+                planes_z,
+                params.chord_error,
+                chord,
+            )
+        ):
+            warnings.append(loose)
     if short := unresolved_reference_warning(ref.unresolved, planes_z, chord):
         warnings.append(short)
     box_lo, box_hi = occt.xy_box

@@ -514,6 +514,44 @@ def test_off_centre_bends_are_within_budget_and_a_loose_files_offsets_are_put_do
 
 
 @pytest.mark.slow
+def test_dst_over_a_budget_finer_than_the_files_edge_tolerances_is_named_where_an_edge_explains_it():
+    """boxed_sphere turned (22.6, 70.6, -54.5) at chord_error 0.005 mm (0.4 mm segments), z = 9.1:
+    face 127's section ends at its own boundary 18 um from edge 561, whose tolerance is 0.055 mm,
+    and the face beyond it begins at the edge's crossing; the ring joins that crossing straight
+    from the face's curve and passes 0.0156 mm from the section's end (the part between lies
+    34 um off every face: the file joins its faces there only within the edge's tolerance). Every
+    ring vertex is on the reference (vertex_dev within the budget); the report names each plane
+    where DST is over its budget only at such points, with the edge's tolerance. (Found by
+    ``scan_turns.py --seed 3904 --chord-error 0.005 --segment-length 0.4``, which counts such a
+    turn as within budget but for the file's edge tolerances.)"""
+    from worker.dst.report_warnings import edge_tolerances
+
+    path, params = _turned("assembly/boxed_sphere.step", (22.6, 70.6, -54.5))
+    params = params.model_copy(update={"chord_error": 0.005, "segment_length": 0.4})
+    mesh = slice_step(path, params)
+    heights = mesh.planes.section_z
+    ref = _exact_reference(mesh.part, mesh.params, heights, helper=False).sections
+    d, plane, pts = _exact_points_from_ring(mesh, heights, ref)
+    over = d > params.chord_error + 1e-6
+    (j,) = np.unique(plane[over])  # one plane over budget, z = 9.1
+    assert mesh.planes.z[j] == pytest.approx(9.1)
+    xyz = np.column_stack([pts[over], ref.zmin + heights[plane[over]]])
+    tol = edge_tolerances(mesh.part, xyz, d[over])
+    assert np.all(tol >= d[over]) and tol.max() == pytest.approx(0.0554, abs=5e-4)
+
+    report = build_report(mesh.part, params, file_name=path.name, dst=mesh, baselines=())
+    (dst,) = report.meshes
+    assert dst.layers[j].chord_dev == pytest.approx(d[over].max(), abs=1e-3)
+    assert dst.layers[j].vertex_dev <= params.chord_error
+    (note,) = [w for w in report.warnings if "runs within the tolerance of a B-rep edge" in w]
+    assert (
+        f"at 1 plane(s) only where the exact section runs within the tolerance of a B-rep edge (plane(s) {j};"
+        in note
+    )
+    assert "z = 9.1000 mm, by an edge of tolerance 0.0554 mm" in note
+
+
+@pytest.mark.slow
 def test_a_bend_next_to_a_corner_that_the_end_segments_midpoint_hides_is_split():
     """boxed_sphere turned to (36.3, -159.6, 99.5), z = 8.5: a 0.595 mm ring segment from a corner
     had its midpoint 4 um from its chord (no quarter check below a quarter of the budget), while its
