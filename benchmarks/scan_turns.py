@@ -16,7 +16,8 @@ finding is then rebuilt with the same options).
 Needs the shared corpus beside the checkout (``../shared/corpus``). Exits 1 if any turn is over budget
 or fails to build with an unexpected error. A turn over budget only at points on needles of the
 section (a spike out and back, or a cusp's thin end, under 1 um wide: ``cuts.loop_needles``) or
-within the tolerance of a loose B-rep edge, each no farther from the ring than that tolerance (the
+within the tolerance of a loose B-rep edge, each no farther from the ring than the budget and that
+tolerance together (the
 file's faces and edges disagree by that much there: ``report_warnings.edge_tolerances``), is
 printed as such and not counted: the ring need not follow what encloses no material, nor can it be
 held to more than the file defines. The report names both kinds of plane.
@@ -143,13 +144,14 @@ def _on_needles(mesh, ref, d: np.ndarray, plane: np.ndarray, pts: np.ndarray) ->
 
 def _at_loose_edges(mesh, ref, d: np.ndarray, plane: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """Of the exact points over the chord budget, those within the tolerance of a B-rep edge whose
-    tolerance is at least their distance from the ring (``report_warnings.edge_tolerances``: the
-    faces and the edge disagree by that much there, and the report names such planes)."""
+    tolerance is at least their distance from the ring less the budget
+    (``report_warnings.edge_tolerances``: the faces and the edge disagree by that much there, and
+    the report names such planes)."""
     from worker.dst.report_warnings import edge_tolerances
 
     over = np.flatnonzero(d > mesh.params.chord_error + 1e-6)
     xyz = np.column_stack([pts[over], ref.zmin + mesh.planes.section_z[plane[over]]])
-    return np.isfinite(edge_tolerances(mesh.part, xyz, d[over]))
+    return np.isfinite(edge_tolerances(mesh.part, xyz, d[over] - mesh.params.chord_error))
 
 
 if __name__ == "__main__":

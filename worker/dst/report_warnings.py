@@ -286,10 +286,10 @@ def edge_tolerance_warning(
     resolution: float,
 ) -> str | None:
     """The warning for planes where the DST mesh is over its chord budget only at exact points that
-    lie within the tolerance of a B-rep edge, each no farther from the DST ring than that edge's
-    tolerance: there the faces on either side of the edge, and the edge itself, disagree by up to
-    that tolerance (each face's section ends at its own boundary, and the file joins them only
-    within the tolerance), so the exact section is defined only to it. A chord budget below a
+    lie within the tolerance of a B-rep edge, each no farther from the DST ring than the budget and
+    that edge's tolerance together: there the faces on either side of the edge, and the edge itself,
+    disagree by up to that tolerance (each face's section ends at its own boundary, and the file
+    joins them only within the tolerance), so the exact section is defined only to it. A chord budget below a
     file's edge tolerances meets this at its loose edges: ``boxed_sphere`` turned (22.6, 70.6,
     -54.5) at chord_error 0.005 mm, z = 9.1, where face 127's section ends 18 um from edge 561
     (tolerance 0.055 mm) and the ring, joining the edge's own crossing, passes 0.0156 mm from that
@@ -316,7 +316,7 @@ def edge_tolerance_warning(
     # the farthest first: a plane's first point not so explained leaves it unnamed
     order = far[np.argsort(-d[far])]
     xyz = np.column_stack([xy[order], zmin + heights[js[plane_k[order]]]])
-    tols = edge_tolerances(part, xyz, d[order])
+    tols = edge_tolerances(part, xyz, d[order] - chord_error)
     named: dict[int, tuple[float, float]] = {}  # plane -> (largest distance, its edge's tolerance)
     unexplained: set[int] = set()
     for i, tol in zip(order.tolist(), tols.tolist(), strict=True):
@@ -336,8 +336,9 @@ def edge_tolerance_warning(
         f"{', ...' if len(planes) > 10 else ''}; the largest, {dist:.3g} mm, at z = "
         f"{planes_z[int(js[k])]:.4f} mm, by an edge of tolerance {tol:.3g} mm): there the "
         "faces on either side of the edge and the edge itself disagree by up to that tolerance, so the "
-        "section is defined only to it, and the DST ring lies within it: the file itself is no more "
-        "exact there than its edge tolerances, which are coarser than the chord_error asked for"
+        "section is defined only to it, and the DST ring is within its budget of the section so "
+        "defined: the file itself is no more exact there than its edge tolerances, which are coarser "
+        "than the chord_error asked for"
     )
 
 
@@ -369,7 +370,8 @@ def _edges_with_boxes(part: LoadedPart) -> list[_EdgeProbe]:
 def edge_tolerances(part: LoadedPart, points: np.ndarray, dists: np.ndarray) -> np.ndarray:
     """For each point (n, 3; the part's coordinates), the largest tolerance among the B-rep edges
     within whose tolerance it lies (its distance to the edge's curve) and whose tolerance is at least
-    its ``dists`` entry; NaN where there is none."""
+    its ``dists`` entry (the part of a deviation the tolerance must explain); NaN where there is
+    none."""
     out = np.full(len(points), np.nan)
     if not len(points):
         return out

@@ -545,7 +545,7 @@ def test_dst_over_budget_only_within_a_loose_edges_tolerance_is_put_down_to_the_
     plane's reference point nearest a seam edge moved 0.03 mm off the surface, so DST's chord_dev
     there is 0.03 mm (budget 0.025). With the torus's edge tolerances (1e-7 mm) nothing explains
     that; raised to 0.05 mm, the point lies within them and the report names the plane; raised
-    only to 0.02 mm (less than DST's distance from the point), it does not."""
+    only to 0.02 mm (less than the point's distance from the edge), it does not."""
     from OCP.BRep import BRep_Builder, BRep_Tool
     from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeVertex
     from OCP.BRepExtrema import BRepExtrema_DistShapeShape
