@@ -79,6 +79,11 @@ def main(argv: list[str] | None = None) -> int:
         if getattr(args, k) is not None
     }
     if settings:
+        try:  # settings that contradict each other are refused once, not at every turn
+            SliceParams.parse(**settings)
+        except DstError as exc:
+            print(f"settings refused ({exc.code}): {exc}", file=sys.stderr)
+            return 2
         print("settings: " + ", ".join(f"{k} {v}" for k, v in settings.items()), flush=True)
     rng = np.random.default_rng(args.seed)
     failed = 0

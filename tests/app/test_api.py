@@ -138,6 +138,7 @@ def _without_rotation(params: dict) -> dict:
         (STEP_HEAD, {"layer_height": 5}, 422, "invalid_parameters"),
         (STEP_HEAD, {"chord_error": 0.9, "segment_length": 0.5}, 422, "invalid_parameters"),
         (STEP_HEAD, {"mode": "sideways"}, 422, "invalid_parameters"),
+        (STEP_HEAD, {"mode": "inclusive", "target_slicer": "prusa"}, 422, "invalid_parameters"),
         (STEP_HEAD, {"baselines": "occt_fast,bogus"}, 422, "invalid_parameters"),
         (STEP_HEAD, {"rotate_x": 400}, 422, "invalid_parameters"),
         (STEP_HEAD, {"rotate_y": "sideways"}, 422, "invalid_parameters"),

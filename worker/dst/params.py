@@ -75,6 +75,16 @@ class SliceParams(BaseModel):
             )
         return self
 
+    @model_validator(mode="after")
+    def _prusa_slices_mid_layer(self) -> SliceParams:
+        # refused here, with the request, not when the job plans its planes
+        if self.target_slicer == "prusa" and self.mode != "middle":
+            raise ValueError(
+                f"target_slicer 'prusa' only slices in 'middle' mode (PrusaSlicer has no slicing-tolerance "
+                f"setting), got mode '{self.mode}'"
+            )
+        return self
+
     @property
     def h0(self) -> float:
         """The first-layer height actually used, mm."""

@@ -24,6 +24,18 @@ def test_chord_error_must_be_below_segment_length():
         SliceParams.parse(segment_length=0.1, chord_error=0.2)
 
 
+@pytest.mark.parametrize("mode", ["inclusive", "exclusive"])
+def test_prusaslicers_planes_are_refused_in_a_boundary_mode_when_the_parameters_are_read(mode):
+    """PrusaSlicer always slices mid-layer: the combination is refused with the request (the API's
+    upload, the CLI's options), not when a job plans its planes."""
+    with pytest.raises(
+        InvalidParameters, match=f"target_slicer 'prusa' only slices in 'middle' mode.*'{mode}'"
+    ):
+        SliceParams.parse(mode=mode, target_slicer="prusa")
+    assert SliceParams.parse(mode=mode, target_slicer="cura").mode == mode
+    assert SliceParams.parse(target_slicer="prusa").mode == "middle"
+
+
 def test_defaults_match_the_documented_ones():
     p = SliceParams.parse()
     assert (p.layer_height, p.h0, p.mode, p.segment_length, p.chord_error) == (0.2, 0.2, "middle", 0.8, 0.025)

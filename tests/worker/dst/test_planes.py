@@ -59,5 +59,11 @@ def test_too_many_planes_is_a_resource_limit():
 
 
 def test_prusa_has_no_boundary_modes():
-    with pytest.raises(InvalidParameters):
-        plan_planes(height=1.0, params=SliceParams(mode="inclusive", target_slicer="prusa"))
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="only slices in 'middle' mode"):
+        SliceParams(mode="inclusive", target_slicer="prusa")
+    # a copy with updates skips the model's validation: planning refuses it too
+    bypass = SliceParams(target_slicer="prusa").model_copy(update={"mode": "inclusive"})
+    with pytest.raises(InvalidParameters, match="only slices in 'middle' mode"):
+        plan_planes(height=1.0, params=bypass)
