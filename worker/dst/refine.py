@@ -110,7 +110,10 @@ class RunRefiner(FaceLimits, RunEnds):
         if len(flat) < 2:
             return runs_ids
         step = np.abs(np.diff(xyz[flat], axis=0)).max(axis=1)
-        if step.min() >= REPEAT_MM:  # (steps across two runs' ends included: only a cheap filter)
+        # (not the step from a run's end to the next run's start: often the same vertex)
+        ends = np.cumsum([len(ids) for ids in runs_ids])[:-1] - 1
+        step[ends[ends >= 0]] = np.inf
+        if step.min() >= REPEAT_MM:
             return runs_ids
         out = []
         for ids in runs_ids:

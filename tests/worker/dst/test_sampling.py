@@ -707,3 +707,7 @@ def test_a_runs_samples_at_one_point_are_dropped_against_the_point_kept_before_a
     apart = [pool.add((xi, 0.5, 7.0), 0) for xi in (20.0, 20.0 + 2e-9, 21.0)]
     assert RunRefiner._without_repeats(host, [apart]) == [apart]
     assert RunRefiner._without_repeats(host, [[]]) == [[]]
+    # runs that share their end vertex (a loop's runs, end to start) hold no repeat for that
+    chained = [[far[0], far[1]], [far[1], far[2]], [far[2], far[0]]]
+    assert RunRefiner._without_repeats(host, chained) is chained
+    assert host.stats.repeat_samples == 3
