@@ -17,10 +17,10 @@ Needs the shared corpus beside the checkout (``../shared/corpus``). Exits 1 if a
 or fails to build with an unexpected error. A turn over budget only at points on needles of the
 section (a spike out and back, or a cusp's thin end, under 1 um wide: ``cuts.loop_needles``) or
 within the tolerance of a loose B-rep edge, each no farther from the ring than the budget and that
-tolerance together (the
-file's faces and edges disagree by that much there: ``report_warnings.edge_tolerances``), is
-printed as such and not counted: the ring need not follow what encloses no material, nor can it be
-held to more than the file defines. The report names both kinds of plane.
+tolerance together (the file's faces and edges disagree by that much there:
+``report_warnings.edge_tolerances``), is printed as such and not counted: the ring need not
+follow what encloses no material, nor can it be held to more than the file defines. The report
+names both kinds of plane.
 """
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     from tests.worker.dst.test_corpus import FILES, _exact_points_from_ring, _params
     from worker.dst.errors import DstError
-    from worker.dst.params import ROTATION_FIELDS, SliceParams
+    from worker.dst.params import ROTATION_FIELDS, SLICING_FIELDS, SliceParams
     from worker.dst.pipeline import slice_step
     from worker.dst.report import _exact_reference
 
@@ -68,15 +68,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     settings = {
         k: getattr(args, k)
-        for k in (
-            "layer_height",
-            "first_layer_height",
-            "mode",
-            "segment_length",
-            "chord_error",
-            "target_slicer",
-        )
-        if getattr(args, k) is not None
+        for k in SLICING_FIELDS
+        if k not in ROTATION_FIELDS and getattr(args, k) is not None
     }
     if settings:
         try:  # settings that contradict each other are refused once, not at every turn

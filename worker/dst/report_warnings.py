@@ -351,15 +351,16 @@ class _EdgeProbe:
     box: Bnd_Box
 
 
-def _edges_with_boxes(part: LoadedPart) -> list[_EdgeProbe]:
+def _edges_with_boxes(part: LoadedPart, min_tol: float) -> list[_EdgeProbe]:
+    """The part's edges (each once, degenerate ones left out) whose tolerance is at least ``min_tol``."""
     edges = ShapeIndexedMap()
     TopExp.MapShapes_s(part.compound, TopAbs_EDGE, edges)
     out = []
     for i in range(1, edges.Extent() + 1):
         edge = TopoDS.Edge(edges.FindKey(i))
-        if BRep_Tool.Degenerated_s(edge):
-            continue
         tol = BRep_Tool.Tolerance_s(edge)
+        if tol < min_tol or BRep_Tool.Degenerated_s(edge):
+            continue
         box = Bnd_Box()
         BRepBndLib.Add_s(edge, box, False)
         box.Enlarge(tol)
@@ -375,8 +376,7 @@ def edge_tolerances(part: LoadedPart, points: np.ndarray, dists: np.ndarray) -> 
     out = np.full(len(points), np.nan)
     if not len(points):
         return out
-    least = float(np.min(dists))
-    edges = [e for e in _edges_with_boxes(part) if e.tol >= least]  # (in a tight file: none)
+    edges = _edges_with_boxes(part, float(np.min(dists)))  # (in a tight file: none)
     for i, (p, dist) in enumerate(zip(points.tolist(), np.asarray(dists).tolist(), strict=True)):
         q = gp_Pnt(*p)
         vertex = BRepBuilderAPI_MakeVertex(q).Vertex()
