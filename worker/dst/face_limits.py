@@ -19,7 +19,7 @@ from OCP.gp import gp_Pnt, gp_Vec
 
 from worker.dst.chords import CHORD_FILL, chord_position, point_segment_distance
 from worker.dst.constants import LEVEL_TOL_MM, NEWTON_MAX_ITER
-from worker.dst.runs import Run
+from worker.dst.runs import BRIDGE_POINT, Run
 
 TRIM_TOL_MM = 1e-6
 TRIM_ENTRY_TOL_MM = 1e-5  # where a section crosses its face's trim: found to this (``_into_trim``)
@@ -395,10 +395,12 @@ class FaceLimits:
         for a, b in zip(starts.tolist(), stops.tolist(), strict=True):
             beyond = {k: (xyz[k].copy(), uv[k].copy()) for k in (a, b)}  # (where they were dropped)
             moved = False
+            at_corner, entered = False, None
             for k, beside in ((a, a - 1), (b, b + 1)):
                 if not (0 <= beside < n and ri[beside] == ri[k] and vid[beside] != -2):
                     continue
                 if vid[beside] in self.corner_vids:
+                    at_corner = True
                     continue
                 r = int(ri[k])
                 out_xyz, out_uv = beyond[k]
@@ -420,6 +422,9 @@ class FaceLimits:
                     xyz[k], uv[k] = entry
                     vid[k] = -1
                     moved = a == b
+                    entered = k
+            if at_corner and entered is not None:
+                vid[entered] = BRIDGE_POINT  # the ring bridges from here to the corner
         if added:
             at = np.array([p for p, _, _ in added])
             ri = np.insert(ri, at, ri[at - 1])

@@ -48,7 +48,7 @@ from worker.dst.constants import (
 from worker.dst.errors import TessellationError
 from worker.dst.face_limits import FaceLimits
 from worker.dst.run_ends import RunEnds
-from worker.dst.runs import GAP_POINT, GAP_SPAN_REL, Run
+from worker.dst.runs import BRIDGE_POINT, GAP_POINT, GAP_SPAN_REL, Run
 
 # A sampler that is ``halving`` checks its segments at this many times the chord; one within that
 # but not within the chord is kept as its two halves, each within the chord where the curve is a
@@ -439,9 +439,11 @@ class RunRefiner(FaceLimits, RunEnds):
             self._record_gaps(d > L, d, xyz[:-1], xyz[1:], run_z[ri[:-1]], run_face[ri[:-1]])
         new = np.flatnonzero(vid < 0)
         gap_pt = new[vid[new] == GAP_POINT]
+        bridge_pt = new[vid[new] == BRIDGE_POINT]
         vid[new] = self.pool.extend(xyz[new, :2], run_z[ri[new]], run_plane[ri[new]])
         # where the curve meets the jump from a run's end vertex off it (the ring turns there)
         self.gap_vids.update(vid[gap_pt].tolist())
+        self.bridge_vids.update(vid[bridge_pt].tolist())
         bounds = np.searchsorted(ri, np.arange(n_runs + 1))
         ids = vid.tolist()
         return [ids[bounds[i] : bounds[i + 1]] for i in range(n_runs)]

@@ -16,6 +16,9 @@ import numpy as np
 SUSPECT_DEFLECTIONS = 5.0
 GAP_SPAN_REL = 1e-6  # a seed interval this small (relative to its run) cannot hold another exact point
 GAP_POINT = -3  # (vertex id placeholder of a point added next to a run's end: ``RunEnds._gap_end_points``)
+# (vertex id placeholder of a point where a run's curve leaves its face's trim for good before the
+# corner at the run's end: ``FaceLimits._trim_borders``)
+BRIDGE_POINT = -4
 
 
 @dataclass

@@ -26,10 +26,12 @@ exact curve from one end to the other and sampled again with the trace as seeds 
 from __future__ import annotations
 
 import math
+from collections import Counter
 from dataclasses import dataclass, fields
 
 import numpy as np
 
+from worker.dst.chords import point_segment_distance
 from worker.dst.constants import MIN_LOOP_VERTICES, REPEAT_MM, SEGMENT_FILL
 from worker.dst.crossings import Crossings
 from worker.dst.errors import TessellationError
@@ -102,6 +104,8 @@ class SamplingStats:
     pole_points: int = 0  # points Newton put past a pole of their face, solved on it (``_through_poles``)
     excursions: int = 0  # segments re-sampled along an excursion of the curve they skipped
     excursion_failures: int = 0  # segments suspected of skipping one that could not be traced
+    corner_handovers: int = 0  # bridges to a corner sampled on the face beyond it (_corner_handovers)
+    corner_handover_failures: int = 0  # ... that could not be sampled there (the bridge kept)
     spur_vertices: int = 0  # ring vertices dropped as tips of spurs onto a face's extension
     reordered_crossings: int = 0  # crossings put at the section point nearest them (see _solve_crossing)
     kink_corners: int = 0  # corners placed where a section crosses a C0 line inside a face
@@ -232,6 +236,9 @@ class RingSampler(Crossings, Traces, RunRefiner):
         # vertex ids where the section changes face or meets a B-rep edge: its curvature may jump there
         self.corner_vids: set[int] = set()
         self.gap_vids: set[int] = set()  # points added next to run ends off their curve (refine.py)
+        # points where a run's curve leaves its face for good before the corner at its end: the
+        # ring bridges from there to the corner (``FaceLimits._trim_borders``; ``_corner_handovers``)
+        self.bridge_vids: set[int] = set()
         self._kinks: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # face -> interior C0 u and v lines
         self._ads = [f.ad for f in mesh.faces]
         self._evals = [f.batch for f in mesh.faces]
@@ -491,8 +498,6 @@ class RingSampler(Crossings, Traces, RunRefiner):
         if self._retrace_segments(li, cl, ring, starts, face_of):
             ring = self._pinned_ring(cl)
         runs = self._excursion_runs(ring, face_of, li, stretches=False)
-        if not runs:
-            return ring
         for (k, _, run), run_pts in zip(runs, self._sample_traced([r for *_, r in runs]), strict=True):
             if run_pts is None:
                 continue
@@ -504,7 +509,90 @@ class RingSampler(Crossings, Traces, RunRefiner):
             sub = self.subdiv[c]
             self.subdiv[c] = sub[:at] + run_pts[1:-1] + sub[at:]
             self.stats.excursions += 1
-        return self._pinned_ring(cl)
+        if runs:
+            ring = self._pinned_ring(cl)
+        return self._corner_handovers(li, cl, nxt_pos, ring)
+
+    def _corner_handovers(self, li: int, cl: list[int], nxt_pos: np.ndarray, ring: list[int]) -> list[int]:
+        """Loop ``li``'s ring (crossings ``cl``, their successors' positions ``nxt_pos``) with the
+        bridges to its corners sampled on the face beyond them.
+
+        Where a segment's curve leaves its face's trim for good before the corner at its end, the
+        ring bridges from where it leaves to the corner (``FaceLimits._trim_borders``). On a loose
+        file the section there runs on the corner's other face, which can bend away from the bridge:
+        trj7_b1-ec-214 turned (-99.8, 126.0, -162.8) at z = 259.1, face 26's curve left its trim
+        0.17 mm before the crossing of edge 189 (tolerance 0.014 mm), and face 25's section between
+        bent 0.031 mm off the bridge. Each bridge is sampled on that face as a run seeded along the
+        straight (u, v) line between its ends (``_sample_runs``: the budget's every check). Where
+        that fails, or a sample lies farther from the bridge than half its length (no arc between
+        its ends goes there: another piece of that face's section), the bridge stays as it was.
+        Segments along in-plane edges (their points shared with other passes) and corners the ring
+        passes twice are left alone."""
+        if not self.bridge_vids or not any(v in self.bridge_vids for v in ring):
+            return ring
+        topo = self.topo
+        n = len(ring)
+        position = {v: k for k, v in enumerate(ring)}
+        if len(position) < n:  # (a vertex the ring passes twice has no one place)
+            twice = {v for v, m in Counter(ring).items() if m > 1}
+            position = {v: k for v, k in position.items() if v not in twice}
+        prev_pos = np.empty_like(nxt_pos)
+        prev_pos[nxt_pos] = np.arange(len(nxt_pos))
+        node = topo.cross_node
+
+        def face(i: int) -> int:  # the face of the segment from crossing cl[i]
+            return int(self.mesh.tri_face[topo.seg_tri[cl[i]]])
+
+        xyz = self.pool.xyz
+        found: list[tuple[int, bool, Run]] = []  # (crossing, at the segment's end, run)
+        for i, c in enumerate(cl):
+            sub = self.subdiv.get(c, [])
+            k = int(nxt_pos[i])
+            if not sub or (node[c] >= 0 and node[cl[k]] >= 0):
+                continue
+            for at_end, bridge, corner, beyond in (
+                (True, sub[-1], self.crossing(cl[k]), k),
+                (False, sub[0], self.crossing(c), int(prev_pos[i])),
+            ):
+                if bridge not in self.bridge_vids or corner not in self.corner_vids:
+                    continue
+                if bridge not in position or corner not in position or face(beyond) == face(i):
+                    continue
+                a, b = (
+                    (position[bridge], position[corner]) if at_end else (position[corner], position[bridge])
+                )
+                if (a + 1) % n != b:
+                    continue
+                f = face(beyond)
+                ev = self.mesh.faces[f]
+                va, vb = ring[a], ring[b]
+                uv_a = uv_of(ev, xyz[va])
+                seed = np.array([uv_a, ev.same_branch(uv_of(ev, xyz[vb]), uv_a)])
+                length = float(np.linalg.norm(xyz[vb] - xyz[va]))
+                step = 2.0 * float(self.tri_uv_scale[topo.seg_tri[cl[beyond]]])
+                zc = float(topo.planes[topo.loops[li][0]])
+                run = Run(f, np.array([0.0, length]), seed, step, va, vb, 1, zc, int(topo.loops[li][0]))
+                found.append((c, at_end, run))
+        changed = False
+        for c, at_end, run in found:
+            try:
+                run_pts = self._sample_runs([run])[0]
+            except TessellationError:
+                self.stats.corner_handover_failures += 1
+                continue
+            if len(run_pts) < 3:  # the face's curve keeps to the bridge
+                continue
+            now = self.pool.xyz  # (grown by the run's samples)
+            pts = now[run_pts[1:-1]]
+            ends = (np.broadcast_to(now[q], pts.shape) for q in (run.start, run.end))
+            if point_segment_distance(pts, *ends).max() > 0.5 * run.s[-1]:
+                self.stats.corner_handover_failures += 1
+                continue
+            sub = self.subdiv[c]
+            self.subdiv[c] = sub + run_pts[1:-1] if at_end else run_pts[1:-1] + sub
+            self.stats.corner_handovers += 1
+            changed = True
+        return self._pinned_ring(cl) if changed else ring
 
     def traced_loop(self, li: int) -> list[int] | None:
         """A ring of loop ``li`` from the exact section curve alone, for a loop on one face with no

@@ -637,6 +637,19 @@ def test_corners_off_their_faces_curves_in_a_loose_file_are_joined_within_budget
 
 
 @pytest.mark.slow
+def test_a_bridge_to_a_corner_is_sampled_on_the_corners_other_face():
+    """trj7_b1-ec-214 turned to (-99.8, 126.0, -162.8), z = 259.1 (scan seed 3909): face 26's curve
+    leaves its trim near edge 189 (tolerance 0.014 mm) 0.17 mm before the ring's corner on that
+    edge, and the ring bridged from there to the corner. The section between runs on face 25 and
+    bends 0.031 mm off that bridge (budget 0.025). The bridge is now sampled on face 25 (the
+    corner's other face), and every exact point of the plane is within the budget of the ring."""
+    path, params = _turned("freeform/trj7_b1-ec-214.stp", (-99.8, 126.0, -162.8))
+    mesh = slice_step(path, params)
+    assert mesh.stats["corner_handovers"] > 0
+    _assert_planes_within_budget(mesh, 259.1)
+
+
+@pytest.mark.slow
 def test_report_reference_has_no_points_beyond_a_faces_trim_next_to_a_corner():
     """bug24595_281390 turned to (-119.7, -47.5, -168.3), z = 43.5: at a corner, face 0's surface lies
     off the B-rep edge within the file's tolerance and rises slowly, so its curve at the plane runs

@@ -678,6 +678,35 @@ def test_a_corner_whose_faces_curve_runs_on_past_the_trim_joins_it_where_it_ente
     assert d.max() <= s.chord + 1e-9
 
 
+def test_where_a_runs_curve_leaves_its_face_for_good_before_its_corner_the_ring_bridges_from_there(
+    half_cone_sampler,
+):
+    """A run whose corner lies beyond its face's trim (the half cone's circle of radius 7.5 at
+    z = 5, the corner on it 0.05 rad past the trim at y = 0, as where the B-rep's faces disagree and
+    the section runs on the corner's other face there): its samples beyond the trim are dropped, and
+    the ring bridges from the circle's entry into the trim, (7.5, 0, 5), to the corner. That entry,
+    and no other vertex of the run, is marked as such a bridge's end (``bridge_vids``): a pinned
+    loop samples the bridge on the corner's other face (``RingSampler._corner_handovers``)."""
+    from worker.dst.runs import Run
+
+    mesh, topo, cone = half_cone_sampler
+    # every sample checked against the trim (as the report's reference is): the build checks those
+    # near moved ends and corners, which trj7's were
+    s = RingSampler(mesh, topo, VertexPool(), segment_length=1.0, chord_error=0.001, exact_trim=True)
+    a0, a1 = -0.05, 0.6
+    ev = mesh.faces[cone]
+    uv = np.array([ev.uv_near(tuple(_on_circle(a)), (0.0, 0.0)) for a in np.linspace(a0, a1, 5)])
+    vids = [s.pool.add(tuple(_on_circle(a1)), 0), s.pool.add(tuple(_on_circle(a0)), 0)]
+    s.corner_vids.add(vids[1])
+    run = Run(cone, R_Z * (a1 - np.linspace(a1, a0, 5)), uv[::-1], 0.5, *vids, 4, Z, 0)
+    (ids,) = s._sample_runs([run])
+    ring = s.pool.xyz[ids]
+    assert ids[0] == vids[0] and ids[-1] == vids[1]
+    np.testing.assert_allclose(ring[-2], [R_Z, 0.0, Z], atol=1e-5)
+    assert (ring[:-1, 1] >= -1e-6).all()  # nothing beyond the trim but the corner
+    assert s.bridge_vids & set(ids) == {ids[-2]}
+
+
 def test_a_runs_samples_at_one_point_are_dropped_against_the_point_kept_before_and_the_runs_end():
     """``RunRefiner._without_repeats``: an inner sample within 1 nm (in x, y and z) of the sample
     kept before it, or of the run's end, is dropped (and counted), whatever the ids; the run's two
