@@ -381,8 +381,10 @@ class FaceLimits:
         26.2, 59.9) at z = 0.1: edge tolerances of 0.055 mm, a curve leaving the face and coming back
         0.3 mm further on), the ring bridges the gap from boundary to boundary. A stretch that
         ``_drop_off_trim_ends`` dropped next to a corner moves only at its side away from the
-        corner: the corner joins the face's curve where it enters the trim. Returns the four arrays
-        (with the added points)."""
+        corner: the corner joins the face's curve where it enters the trim, and the ring bridges
+        from that entry to the corner (its vertex id ``BRIDGE_POINT`` until it has one: the pinned
+        loop samples the bridge on the corner's other face, ``RingSampler._corner_handovers``).
+        Returns the four arrays (with the added points)."""
         gone = vid == -2
         if not gone.any():
             return ri, xyz, vid, uv
