@@ -547,6 +547,8 @@ class RingSampler(Crossings, Traces, RunRefiner):
             return int(self.mesh.tri_face[topo.seg_tri[cl[i]]])
 
         xyz = self.pool.xyz
+        plane = int(topo.loops[li][0])
+        zc = float(topo.planes[plane])
         found: list[tuple[int, bool, Run]] = []  # (crossing, at the segment's end, run)
         for i, c in enumerate(cl):
             sub = self.subdiv.get(c, [])
@@ -559,22 +561,21 @@ class RingSampler(Crossings, Traces, RunRefiner):
             ):
                 if bridge not in self.bridge_vids or corner not in self.corner_vids:
                     continue
-                if bridge not in position or corner not in position or face(beyond) == face(i):
+                f = face(beyond)
+                if bridge not in position or corner not in position or f == face(i):
                     continue
                 a, b = (
                     (position[bridge], position[corner]) if at_end else (position[corner], position[bridge])
                 )
                 if (a + 1) % n != b:
                     continue
-                f = face(beyond)
                 ev = self.mesh.faces[f]
                 va, vb = ring[a], ring[b]
                 uv_a = uv_of(ev, xyz[va])
                 seed = np.array([uv_a, ev.same_branch(uv_of(ev, xyz[vb]), uv_a)])
                 length = float(np.linalg.norm(xyz[vb] - xyz[va]))
                 step = 2.0 * float(self.tri_uv_scale[topo.seg_tri[cl[beyond]]])
-                zc = float(topo.planes[topo.loops[li][0]])
-                run = Run(f, np.array([0.0, length]), seed, step, va, vb, 1, zc, int(topo.loops[li][0]))
+                run = Run(f, np.array([0.0, length]), seed, step, va, vb, 1, zc, plane)
                 found.append((c, at_end, run))
         changed = False
         for c, at_end, run in found:
