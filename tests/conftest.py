@@ -14,7 +14,7 @@ CORPUS = Path(__file__).resolve().parents[1].parent / "shared" / "corpus"
 def build_part(kind: str, **kw):
     """An analytic part as a build123d shape (mm). Kinds: hemisphere, torus, cone, tube, step_box,
     tangent_features, dome_below_top, tilted_boss, through_hole, lying_cylinder, half_torus,
-    filleted_ridge, lens."""
+    filleted_ridge, lens, cut_cap."""
     import build123d as bd
 
     if kind == "hemisphere":
@@ -106,6 +106,18 @@ def build_part(kind: str, **kw):
         plate = bd.Box(30, 30, 1, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MIN))
         post = bd.Pos(13, 13, 0) * bd.Box(2, 2, 8, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MIN))
         return plate + post + bd.Pos(0, 0, top - 2.0) * bd.Torus(10.0, 2.0)
+    if kind == "cut_cap":
+        # The top of a sphere (R 20, axis along x: its top (0, 0, 20) is no pole) above z = 14, its
+        # side beyond x = ``offset`` cut off by a 45 degree plane through the sphere's point
+        # (offset, 0, sqrt(R^2 - offset^2)): the top lies inside the sphere's face, the edge with the
+        # cut ``offset`` from it and at most R - sqrt(R^2 - offset^2) below it.
+        r, off = 20.0, kw.get("offset", 0.3)
+        ball = bd.Rot(0, 90, 0) * bd.Sphere(r)
+        cap = ball & bd.Pos(0, 0, 14) * bd.Box(
+            50, 50, 10, align=(bd.Align.CENTER, bd.Align.CENTER, bd.Align.MIN)
+        )
+        cut = bd.Plane(origin=(off, 0, math.sqrt(r * r - off * off)), z_dir=(1, 0, 1))
+        return bd.split(cap, cut, keep=bd.Keep.BOTTOM)
     if kind == "half_torus":
         return _half_torus(kw.get("major", 4.0), kw.get("minor", 2.336), kw.get("seam", 0.1))
     raise ValueError(kind)

@@ -10,8 +10,11 @@ may miss the extreme (the bottom line of a horizontal cylinder, the top of a B-s
 2. the height is minimised exactly on each: on faces by bounded L-BFGS on z(u, v) from the lowest
    node's (u, v), kept only if the optimum is inside the trimmed face; on edges by bounded Brent
    around the lowest sample of the curve;
-3. the node nearest to the winning point is moved onto it (an exact surface point again). Only one
-   node moves, by less than a topology-mesh triangle, so no triangle folds.
+3. the winning point becomes a node: a new one, splitting the triangle of its face that holds it
+   (or the mesh edge along its B-rep edge), so no other node moves. Moving the nearest node onto it
+   instead, as before, could take a node on a B-rep edge into one of its faces, dragging the other
+   face's triangles over the first (``trj7_b1-ec-214`` turned (32.9, 100.0, -141.2): the edge node
+   below a dome's top moved onto it, and the top plane's ring bridged 0.05 mm inside the section).
 
 Local apexes and dimples (``snap_local_extremes``) get the same treatment where a plane passes
 between the node and the exact extreme: otherwise that plane's small loop would be missed.
@@ -22,26 +25,34 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import minimize
 
+from worker.dst.splits import curve_span, edge_extreme_between, split_edges, split_triangle
 from worker.dst.topomesh import TopoMesh
 
 _CURVE_SAMPLES = 64  # coarse scan of an edge before Brent: finds the basin of its lowest point
 _BAND_DEFLECTIONS = 2.0  # an apex is at most one deflection beyond the node next to it; margin 2x
 _SAME_POINT_MM = 1e-7  # a node closer than this to its exact point keeps its (u, v)
+_AT_NODE_MM = 1e-6  # an extreme this close to a node is put on that node (no new node)
+_ON_TRI_EDGE = 1e-6  # a barycentric coordinate at most this: the point is on the triangle's edge
 
 
 def snap_extremes(meshes: list[TopoMesh]) -> tuple[float, float]:
-    """Move one node of one mesh onto the exact lowest point and one onto the highest. Returns (zmin, zmax)."""
+    """Make the exact lowest point a node of one mesh, and the highest (``_make_node``). Returns
+    (zmin, zmax)."""
     lo = _extreme(meshes, sign=1.0)
+    lo_z = _make_node(meshes[lo[0]], lo[1], lo[2], sign=1.0)[2]
     hi = _extreme(meshes, sign=-1.0)
-    for mi, node, point in (lo, hi):
-        _move_node(meshes[mi], node, point)
-    return float(lo[2][2]), float(hi[2][2])
+    hi_z = _make_node(meshes[hi[0]], hi[1], hi[2], sign=-1.0)[2]
+    return float(lo_z), float(hi_z)
 
 
-def _extreme(meshes: list[TopoMesh], *, sign: float) -> tuple[int, int, np.ndarray]:
-    """(mesh index, node, exact point) of the lowest (sign=+1) or highest (sign=-1) point."""
+# where an extreme lies: ("node", node), ("face", face, (u, v)) or ("edge", edge, curve parameter)
+Where = tuple
+
+
+def _extreme(meshes: list[TopoMesh], *, sign: float) -> tuple[int, Where, np.ndarray]:
+    """(mesh index, where, exact point) of the lowest (sign=+1) or highest (sign=-1) point."""
     best_h = np.inf
-    best: tuple[int, int, np.ndarray] | None = None
+    best: tuple[int, Where, np.ndarray] | None = None
     node_h = [sign * m.xyz[:, 2] for m in meshes]
     global_node = min(float(h.min()) for h in node_h)
     for mi, mesh in enumerate(meshes):
@@ -53,30 +64,31 @@ def _extreme(meshes: list[TopoMesh], *, sign: float) -> tuple[int, int, np.ndarr
         low_set = set(low_nodes.tolist())
         # Start from the node itself: already exact, so the result never gets worse.
         n0 = int(low_nodes[np.argmin(h[low_nodes])])
-        candidates = [(float(h[n0]), mesh.xyz[n0].copy())]
+        candidates: list[tuple[float, Where, np.ndarray]] = [
+            (float(h[n0]), ("node", n0), mesh.xyz[n0].copy())
+        ]
         tri_mask = np.isin(mesh.tris, low_nodes).any(axis=1)
         for f in np.unique(mesh.tri_face[tri_mask]).tolist():
             candidates.extend(_face_extreme(mesh, f, tri_mask, sign))
         edge_ids = {ei for (a, b), ei in mesh.edge_of.items() if a in low_set or b in low_set}
         for ei in sorted(edge_ids):
             candidates.append(_edge_extreme(mesh, ei, sign))
-        hval, point = min(candidates, key=lambda c: c[0])
+        hval, where, point = min(candidates, key=lambda c: c[0])
         if hval < best_h:
-            nearest = int(np.argmin(np.linalg.norm(mesh.xyz[low_nodes] - point, axis=1)))
-            best_h, best = hval, (mi, int(low_nodes[nearest]), point)
+            best_h, best = hval, (mi, where, point)
     assert best is not None
     return best
 
 
 def _face_extreme(
     mesh: TopoMesh, f: int, tri_mask: np.ndarray, sign: float
-) -> list[tuple[float, np.ndarray]]:
+) -> list[tuple[float, Where, np.ndarray]]:
     fe = mesh.faces[f]
     u, v = face_optimum_from_nodes(mesh, f, np.flatnonzero(tri_mask & (mesh.tri_face == f)), sign)
     if not fe.contains(u, v):
         return []
     p = np.array(fe.point(u, v))
-    return [(sign * p[2], p)]
+    return [(sign * p[2], ("face", f, (u, v)), p)]
 
 
 def face_optimum_from_nodes(mesh: TopoMesh, f: int, sel: np.ndarray, sign: float) -> tuple[float, float]:
@@ -123,15 +135,99 @@ def _window(start: float, period: float) -> tuple[float, float]:
     return start - period, start + period
 
 
-def _edge_extreme(mesh: TopoMesh, ei: int, sign: float) -> tuple[float, np.ndarray]:
+def _edge_extreme(mesh: TopoMesh, ei: int, sign: float) -> tuple[float, Where, np.ndarray]:
     ev = mesh.edges[ei]
     s = np.linspace(ev.s0, ev.s1, _CURVE_SAMPLES + 1)
     h = np.array([sign * ev.ad.Value(float(x)).Z() for x in s])
     i = int(np.argmin(h))
     lo, hi = s[max(i - 1, 0)], s[min(i + 1, len(s) - 1)]
     x = ev.height_extreme(lo, hi, sign)
-    pt = np.array(ev.point(x if sign * ev.point(x)[2] <= h[i] else float(s[i])))
-    return sign * pt[2], pt
+    if sign * ev.point(x)[2] > h[i]:
+        x = float(s[i])
+    pt = np.array(ev.point(x))
+    return sign * pt[2], ("edge", ei, x), pt
+
+
+def _make_node(mesh: TopoMesh, where: Where, p: np.ndarray, *, sign: float) -> np.ndarray:
+    """Make the exact extreme ``p`` (found at ``where``) a node of ``mesh``, in place, and return
+    the node's point: ``p``, or, where ``p`` lies on the border of its face's triangles, the
+    extreme of the B-rep edge there (within the mesh's resolution of ``p``).
+
+    A node within ``_AT_NODE_MM`` of ``p`` is put on it; otherwise a new node splits the mesh edge
+    of ``p``'s B-rep edge between the two nodes either side of it, or the triangle of ``p``'s face
+    that holds its (u, v) (at a point on one of that triangle's edges: that edge, on both its
+    triangles). No other node moves, so no face's triangles are dragged over another face."""
+    if where[0] == "node":
+        return mesh.xyz[where[1]]
+    if where[0] == "edge":
+        return _node_on_edge(mesh, where[1], where[2], p)
+    _, f, uv = where
+    t, bary, quv = _triangle_at(mesh, f, uv)
+    corners = mesh.tris[t]
+    near = int(np.argmin(np.linalg.norm(mesh.xyz[corners] - p, axis=1)))
+    if np.linalg.norm(mesh.xyz[corners[near]] - p) < _AT_NODE_MM:
+        _move_node(mesh, int(corners[near]), p)
+        return p
+    if bary.min() > _ON_TRI_EDGE:
+        split_triangle(mesh, t, p, quv)
+        return p
+    # on (or, where BRepMesh's border chords cut the trim, just past) the edge opposite the corner
+    # with the smallest barycentric coordinate
+    k = int(np.argmin(bary))
+    a, b = int(corners[(k + 1) % 3]), int(corners[(k + 2) % 3])
+    key = (min(a, b), max(a, b))
+    ei = mesh.edge_of.get(key)
+    if ei is not None:  # the face's border: the point goes onto its B-rep edge
+        q = edge_extreme_between(mesh, ei, a, b, sign)
+        if q is None:  # the edge's extreme between the two is one of them
+            lower = a if sign * mesh.xyz[a, 2] <= sign * mesh.xyz[b, 2] else b
+            return mesh.xyz[lower]
+        split_edges(mesh, {key: q})
+        return q
+    split_edges(mesh, {key: p})
+    return p
+
+
+def _node_on_edge(mesh: TopoMesh, ei: int, s: float, p: np.ndarray) -> np.ndarray:
+    """Make ``p``, at parameter ``s`` of B-rep edge ``ei``, a node: the node there, or a new one
+    splitting the mesh edge along ``ei`` whose span holds ``s``."""
+    ev = mesh.edges[ei]
+    for (a, b), e in mesh.edge_of.items():
+        if e != ei:
+            continue
+        for n in (a, b):
+            if np.linalg.norm(mesh.xyz[n] - p) < _AT_NODE_MM:
+                _move_node(mesh, n, p)
+                return p
+        span = curve_span(ev, ev.parameter_of(tuple(mesh.xyz[a])), ev.parameter_of(tuple(mesh.xyz[b])))
+        if span is not None and span[0] < s < span[1]:
+            split_edges(mesh, {(a, b): p})
+            return p
+    raise AssertionError(f"no mesh edge along B-rep edge {ei} holds its extreme at parameter {s}")
+
+
+def _triangle_at(mesh: TopoMesh, f: int, uv: tuple[float, float]) -> tuple[int, np.ndarray, np.ndarray]:
+    """The triangle of face ``f`` that holds ``uv`` (the one it lies deepest inside: on the border,
+    nearest to it), its barycentric coordinates there, and ``uv`` on the triangle's branch of a
+    periodic surface."""
+    fe = mesh.faces[f]
+    sel = np.flatnonzero(mesh.tri_face == f)
+    tuv = mesh.tri_uv[sel]  # (k, 3, 2)
+    q = np.tile(np.asarray(uv, dtype=np.float64), (len(sel), 1))
+    for axis in (0, 1):
+        period = fe.period(axis)
+        if period:
+            q[:, axis] += np.round((tuv[:, 0, axis] - q[:, axis]) / period) * period
+    e1, e2, w = tuv[:, 1] - tuv[:, 0], tuv[:, 2] - tuv[:, 0], q - tuv[:, 0]
+    den = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    ok = np.abs(den) > 0.0
+    den = np.where(ok, den, 1.0)
+    l1 = (w[:, 0] * e2[:, 1] - w[:, 1] * e2[:, 0]) / den
+    l2 = (e1[:, 0] * w[:, 1] - e1[:, 1] * w[:, 0]) / den
+    bary = np.column_stack([1.0 - l1 - l2, l1, l2])
+    depth = np.where(ok, bary.min(axis=1), -np.inf)
+    i = int(np.argmax(depth))
+    return int(sel[i]), bary[i], q[i]
 
 
 def snap_local_extremes(mesh: TopoMesh, planes: np.ndarray) -> int:

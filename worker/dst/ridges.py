@@ -32,6 +32,7 @@ from OCP.GeomAbs import GeomAbs_Line, GeomAbs_Plane
 from worker.dst.chords import point_segment_distance
 from worker.dst.constants import ON_PLANE_TOL_MM
 from worker.dst.lowest import face_optimum_from_nodes, snap_local_extremes
+from worker.dst.splits import curve_span, edge_extreme_between, split_edges
 from worker.dst.topomesh import TopoMesh
 
 # a plane this many topology deflections beside a face's highest (lowest) node may miss its sliver
@@ -44,7 +45,6 @@ _GRAZE_ROUNDS = 3  # edges made by grazed splits checked again, at most this man
 _NOISE_MM = 1e-9  # a grazed edge's extreme must pass its plane by more than this (evaluator noise)
 _END_MARGIN = 1e-3  # an extreme this close (a fraction of the edge) to an end is at the end
 _UV_GAP_MM = 1e-6  # a corner whose (u, v) gives a point farther than this from its node is projected
-_SEAM_REL = 1e-9  # a node this close (a fraction of a closed edge's range) to its ends is at its seam
 
 
 def prepare_extremes(
@@ -198,7 +198,7 @@ def _grazed_edges(
         ev = mesh.edges[ei]
         if ev.ad.GetType() == GeomAbs_Line:
             continue  # straight
-        lo_hi = _curve_span(ev, s_of(ei, na), s_of(ei, nb))
+        lo_hi = curve_span(ev, s_of(ei, na), s_of(ei, nb))
         if lo_hi is None:
             continue
         span[c] = (ei, *lo_hi)
@@ -314,7 +314,7 @@ def _split_along(mesh: TopoMesh, f: int, axis: int, value: float, sign: float) -
         if key in points:
             continue
         ei = mesh.edge_of.get(key)
-        p = None if ei is None else _edge_extreme_between(mesh, ei, a, b, sign)
+        p = None if ei is None else edge_extreme_between(mesh, ei, a, b, sign)
         if p is None:
             # inside the face; or on a boundary edge whose extreme is not between the two nodes:
             # the surface on the line, on the edge's pcurve
@@ -324,123 +324,3 @@ def _split_along(mesh: TopoMesh, f: int, axis: int, value: float, sign: float) -
             p = np.array(fe.point(float(uv[0]), float(uv[1])))
         points[key] = p
     return split_edges(mesh, points)
-
-
-def split_edges(mesh: TopoMesh, points: dict[tuple[int, int], np.ndarray]) -> int:
-    """Split each mesh edge ``(a, b)`` (a < b) of ``points`` at its exact B-rep point, in place:
-    a new node there, each triangle using a split edge cut into triangles (corner order kept, so the
-    mesh stays closed and consistently oriented), each new node's (u, v) in every face around it
-    projected from the point, and a split edge lying on a B-rep edge replaced by its two pieces in
-    ``edge_of``. Returns the nodes added."""
-    if not points:
-        return 0
-    new_of = {key: mesh.n_nodes + k for k, key in enumerate(points)}
-    xyz = np.vstack([mesh.xyz, np.asarray(list(points.values()))])
-    # every triangle (any face) with a split edge
-    e = np.stack([mesh.tris, np.roll(mesh.tris, -1, axis=1)], axis=2)  # (m, 3, 2)
-    lo_hi = np.sort(e, axis=2)
-    keys = np.array(list(new_of), dtype=np.int64)
-    n = max(xyz.shape[0], 1)
-    hit = np.isin(lo_hi[..., 0] * n + lo_hi[..., 1], keys[:, 0] * n + keys[:, 1])
-    touched = np.flatnonzero(hit.any(axis=1))
-    new_tris, new_uv, new_face = [], [], []
-    for t in touched.tolist():
-        face = int(mesh.tri_face[t])
-        fe_t = mesh.faces[face]
-        corners = mesh.tris[t].tolist()
-        uvs = mesh.tri_uv[t]
-        poly: list[tuple[int, np.ndarray, bool]] = []
-        for i in range(3):
-            a, b = corners[i], corners[(i + 1) % 3]
-            poly.append((a, uvs[i], False))
-            m = new_of.get((min(a, b), max(a, b)))
-            if m is None:
-                continue
-            p = xyz[m]
-            # (u, v) of the new node in this triangle's face, on this triangle's branch
-            seed = _uv_on_segment(uvs[i], uvs[(i + 1) % 3], mesh.xyz[a], mesh.xyz[b], p)
-            poly.append((m, np.asarray(fe_t.uv_near(tuple(p), tuple(seed))), True))
-        for tri in _triangulate(poly, xyz):
-            new_tris.append([v for v, _ in tri])
-            new_uv.append([uv for _, uv in tri])
-            new_face.append(face)
-    keep = np.ones(len(mesh.tris), dtype=bool)
-    keep[touched] = False
-    mesh.xyz = xyz
-    mesh.tris = np.concatenate([mesh.tris[keep], np.asarray(new_tris, dtype=np.int64)])
-    mesh.tri_uv = np.concatenate([mesh.tri_uv[keep], np.asarray(new_uv, dtype=np.float64)])
-    mesh.tri_face = np.concatenate([mesh.tri_face[keep], np.asarray(new_face, dtype=mesh.tri_face.dtype)])
-    for (a, b), m in new_of.items():
-        ei = mesh.edge_of.pop((a, b), None)
-        if ei is not None:
-            mesh.edge_of[(min(a, m), max(a, m))] = ei
-            mesh.edge_of[(min(m, b), max(m, b))] = ei
-    return len(points)
-
-
-def _uv_on_segment(uva, uvb, pa, pb, p) -> np.ndarray:
-    """(u, v) interpolated along a triangle edge at the fraction where ``p`` projects on it."""
-    ab = pb - pa
-    s = float(np.clip(np.dot(p - pa, ab) / max(float(np.dot(ab, ab)), 1e-300), 0.0, 1.0))
-    return np.asarray(uva) + s * (np.asarray(uvb) - np.asarray(uva))
-
-
-def _edge_extreme_between(mesh: TopoMesh, ei: int, a: int, b: int, sign: float) -> np.ndarray | None:
-    """The B-rep edge's highest (sign -1) or lowest (+1) point strictly between nodes ``a`` and
-    ``b`` (bounded Brent in the curve parameter), or None if it is at either node."""
-    ev = mesh.edges[ei]
-    lo_hi = _curve_span(ev, ev.parameter_of(tuple(mesh.xyz[a])), ev.parameter_of(tuple(mesh.xyz[b])))
-    if lo_hi is None:
-        return None
-    lo, hi = lo_hi
-    s = ev.height_extreme(lo, hi, sign)
-    margin = 1e-9 * (hi - lo)
-    if not lo + margin < s < hi - margin:
-        return None
-    return np.array(ev.point(s))
-
-
-def _curve_span(ev, sa: float, sb: float) -> tuple[float, float] | None:
-    """(lo, hi): the curve parameters of the span between two neighbouring nodes on a B-rep edge, in
-    order. On a closed edge the node at its seam vertex has two parameters, and ``parameter_of``
-    gives either: two nodes more than half the edge apart are that vertex and its neighbour across
-    the seam, whose span runs from the neighbour to the seam's other end (the highest point of a
-    tilted circle can lie there, next to its vertex). None where neither node is at the seam."""
-    lo, hi = min(sa, sb), max(sa, sb)
-    if ev.closed and hi - lo > 0.5 * (ev.s1 - ev.s0):
-        at_seam = _SEAM_REL * (ev.s1 - ev.s0)
-        if lo - ev.s0 <= at_seam:
-            return hi, ev.s1
-        if ev.s1 - hi <= at_seam:
-            return ev.s0, lo
-        return None
-    return lo, hi
-
-
-def _triangulate(
-    poly: list[tuple[int, np.ndarray, bool]], xyz: np.ndarray
-) -> list[list[tuple[int, np.ndarray]]]:
-    """Triangles (corner order kept) of a triangle whose edges got new nodes, given as the polygon of
-    its corners and new nodes in order, each as (node, (u, v), is new). One new node: the fan from
-    it (the other diagonal would join the ends of its own edge: a zero-area triangle). More: each
-    corner between two new nodes is cut off, and what is left (the new nodes' triangle, or a
-    quadrilateral split along its shorter diagonal) filled."""
-    k = len(poly)
-    if k == 4:
-        j = next(i for i, (_, _, new) in enumerate(poly) if new)
-        q = [(v, uv) for v, uv, _ in poly[j:] + poly[:j]]
-        return [[q[0], q[1], q[2]], [q[0], q[2], q[3]]]
-    cut = [i for i in range(k) if not poly[i][2] and poly[i - 1][2] and poly[(i + 1) % k][2]]
-    out = [[poly[(i + d) % k][:2] for d in (-1, 0, 1)] for i in cut]
-    left = [poly[i][:2] for i in range(k) if i not in cut]
-    if len(left) == 3:
-        out.append(left)
-    elif len(left) == 4:
-        p = [xyz[v] for v, _ in left]
-        if np.linalg.norm(p[0] - p[2]) <= np.linalg.norm(p[1] - p[3]):
-            out += [[left[0], left[1], left[2]], [left[0], left[2], left[3]]]
-        else:
-            out += [[left[0], left[1], left[3]], [left[1], left[2], left[3]]]
-    else:
-        raise AssertionError(f"a triangle split into a {len(left)}-gon")
-    return out

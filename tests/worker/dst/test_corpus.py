@@ -650,6 +650,20 @@ def test_a_bridge_to_a_corner_is_sampled_on_the_corners_other_face():
 
 
 @pytest.mark.slow
+def test_the_top_made_a_node_leaves_the_faces_beside_it_alone():
+    """trj7_b1-ec-214 turned to (32.9, 100.0, -141.2), z = 270.9 (scan seed 4002): the part's top
+    (a dome on face 23) lies 1.9 mm from edge 125 to face 373, and the topology mesh's highest node
+    was on that edge, 6 um below the top plane. That node was moved onto the top: face 373's
+    triangles around it then reached over face 23, the top plane's loop crossed them, and its ring
+    bridged 0.0526 mm inside the section (budget 0.025); the report's reference, whose topology
+    mesh had the same move, made a corner there and missed the bulge too. The top is now a new
+    node: every exact point of the plane is within the budget of the ring."""
+    path, params = _turned("freeform/trj7_b1-ec-214.stp", (32.9, 100.0, -141.2))
+    mesh = slice_step(path, params)
+    _assert_planes_within_budget(mesh, 270.9)
+
+
+@pytest.mark.slow
 def test_report_reference_has_no_points_beyond_a_faces_trim_next_to_a_corner():
     """bug24595_281390 turned to (-119.7, -47.5, -168.3), z = 43.5: at a corner, face 0's surface lies
     off the B-rep edge within the file's tolerance and rises slowly, so its curve at the plane runs

@@ -116,6 +116,67 @@ def test_a_turned_torus_is_dropped_on_its_exact_lowest_point(make_step, nurbs):
     assert ref.zmax == pytest.approx(-lowest, abs=1e-9)
 
 
+@pytest.mark.parametrize("nurbs", [False, True])
+def test_the_parts_top_inside_a_face_becomes_a_new_node_and_moves_none(tmp_path, nurbs):
+    """``cut_cap`` (offset 0.3): the sphere's top (0, 0, 20) lies inside its face, and the topology
+    mesh's highest node on the edge with the 45 degree cut face. That node was moved onto the top,
+    and the cut face's triangles at it were dragged over the sphere's face (their corner there off
+    their face's trim). Now the top is a new node, no node moves, the mesh stays closed, and every
+    triangle's corners lie inside its face's trim, at the surface point of their (u, v)."""
+    from tests.conftest import build_part, write_step
+    from worker.dst import constants as C
+    from worker.dst.lowest import snap_extremes
+    from worker.dst.meshops import edge_defects
+    from worker.dst.step_io import read_step
+    from worker.dst.topomesh import build_topomesh
+
+    part = read_step(write_step(build_part("cut_cap", offset=0.3), tmp_path / "cap.step", nurbs=nurbs))
+    mesh = build_topomesh(part.solids[0], deflection=0.02, angular=C.TOPO_ANGULAR_RAD, merge_tol=1e-8)
+    highest = int(np.argmax(mesh.xyz[:, 2]))
+    assert len(np.unique(mesh.tri_face[(mesh.tris == highest).any(axis=1)])) == 2  # on the edge
+    before = mesh.xyz.copy()
+    zmin, zmax = snap_extremes([mesh])
+    assert (zmin, zmax) == (pytest.approx(14.0, abs=1e-9), pytest.approx(20.0, abs=1e-9))
+    np.testing.assert_array_equal(mesh.xyz[: len(before)], before)
+    # (at the flat top, L-BFGS settles within nanometres of the apex: 1e-18 mm lower)
+    assert np.linalg.norm(mesh.xyz - [0.0, 0.0, 20.0], axis=1).min() < 1e-6
+    assert edge_defects(mesh.tris, mesh.n_nodes) == (0, 0)
+    for t in range(len(mesh.tris)):
+        fe = mesh.faces[int(mesh.tri_face[t])]
+        for node, (u, v) in zip(mesh.tris[t].tolist(), mesh.tri_uv[t].tolist(), strict=True):
+            assert np.linalg.norm(np.subtract(fe.point(u, v), mesh.xyz[node])) < 1e-6
+            assert fe.contains(u, v, 1e-7), (t, node)
+
+
+@pytest.mark.parametrize("nurbs", [False, True])
+def test_a_plane_between_a_faces_top_and_its_edge_gets_the_exact_circle(make_step, nurbs):
+    """``cut_cap`` sliced with its top plane at z = 19.999 (h 0.2, first layer 0.099), between the
+    sphere's top and the edge with the cut face (0.3 mm away, ~2 um lower): the exact section there
+    is a circle of radius 0.2 mm on the sphere alone. With the edge node moved onto the top, the
+    analytic part's ring crossed the cut face's dragged triangles and cut 0.079 mm inside that
+    circle. Every ring vertex on the sphere lies on its plane's circle, and every ring segment on the
+    sphere is within the chord budget of it, at every plane."""
+    r = 20.0
+    mesh = slice_step(
+        make_step("cut_cap", offset=0.3, nurbs=nurbs), SliceParams(layer_height=0.2, first_layer_height=0.099)
+    )
+    assert mesh.z_offset == pytest.approx(14.0, abs=1e-9)
+    assert mesh.planes.section_z[-1] == pytest.approx(5.999, abs=1e-6)
+    flat = 0.3 + math.sqrt(r * r - 0.09)  # x + z on the cut face
+    edges, planes = ring_edges(mesh)
+    z = 14.0 + mesh.planes.section_z[planes]
+    a, b = mesh.vertices[edges[:, 0]], mesh.vertices[edges[:, 1]]
+    mid = 0.5 * (a + b)
+    on_sphere = mid[:, 0] + z < flat - 1e-6
+    circle = np.sqrt(r * r - z**2)
+    for p in (a, b):
+        at = on_sphere & (p[:, 0] + z < flat - 1e-6)
+        np.testing.assert_array_less(np.abs(np.hypot(p[at, 0], p[at, 1]) - circle[at]), EXACT_TOL)
+    sag = circle - np.hypot(mid[:, 0], mid[:, 1])
+    assert (on_sphere & (planes == len(mesh.planes) - 1)).sum() >= 3  # the top plane's small circle
+    assert np.abs(sag[on_sphere]).max() <= 0.025 + 1e-6
+
+
 def test_cone_rings_follow_the_linear_radius(make_step):
     mesh = slice_step(make_step("cone", radius=10.0, height=20.0), SliceParams(layer_height=0.25))
     assert_watertight(mesh)
