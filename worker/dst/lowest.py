@@ -189,21 +189,26 @@ def _make_node(mesh: TopoMesh, where: Where, p: np.ndarray, *, sign: float) -> n
 
 
 def _node_on_edge(mesh: TopoMesh, ei: int, s: float, p: np.ndarray) -> np.ndarray:
-    """Make ``p``, at parameter ``s`` of B-rep edge ``ei``, a node: the node there, or a new one
-    splitting the mesh edge along ``ei`` whose span holds ``s``."""
+    """Make ``p``, at parameter ``s`` of B-rep edge ``ei``, a node: a new one splitting the mesh edge
+    along ``ei`` whose span holds ``s``; at (or within ``_AT_NODE_MM`` of) a node, that node, put on
+    ``p`` (the curve's end, where a loose file's vertex lies off it within its tolerance)."""
     ev = mesh.edges[ei]
+    nodes = sorted({n for key, e in mesh.edge_of.items() if e == ei for n in key})
+    near = min(nodes, key=lambda n: float(np.linalg.norm(mesh.xyz[n] - p)))
+    if np.linalg.norm(mesh.xyz[near] - p) < _AT_NODE_MM:
+        _move_node(mesh, near, p)
+        return p
     for (a, b), e in mesh.edge_of.items():
         if e != ei:
             continue
-        for n in (a, b):
-            if np.linalg.norm(mesh.xyz[n] - p) < _AT_NODE_MM:
-                _move_node(mesh, n, p)
-                return p
         span = curve_span(ev, ev.parameter_of(tuple(mesh.xyz[a])), ev.parameter_of(tuple(mesh.xyz[b])))
-        if span is not None and span[0] < s < span[1]:
+        margin = 0.0 if span is None else 1e-9 * (span[1] - span[0])
+        if span is not None and span[0] + margin < s < span[1] - margin:
             split_edges(mesh, {(a, b): p})
             return p
-    raise AssertionError(f"no mesh edge along B-rep edge {ei} holds its extreme at parameter {s}")
+    # at a node's parameter (an end of the edge): that node
+    _move_node(mesh, near, p)
+    return p
 
 
 def _triangle_at(mesh: TopoMesh, f: int, uv: tuple[float, float]) -> tuple[int, np.ndarray, np.ndarray]:
