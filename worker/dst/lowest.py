@@ -10,11 +10,12 @@ may miss the extreme (the bottom line of a horizontal cylinder, the top of a B-s
 2. the height is minimised exactly on each: on faces by bounded L-BFGS on z(u, v) from the lowest
    node's (u, v), kept only if the optimum is inside the trimmed face; on edges by bounded Brent
    around the lowest sample of the curve;
-3. the winning point becomes a node: a new one, splitting the triangle of its face that holds it
-   (or the mesh edge along its B-rep edge), so no other node moves. Moving the nearest node onto it
-   instead, as before, could take a node on a B-rep edge into one of its faces, dragging the other
-   face's triangles over the first (``trj7_b1-ec-214`` turned (32.9, 100.0, -141.2): the edge node
-   below a dome's top moved onto it, and the top plane's ring bridged 0.05 mm inside the section).
+3. the node nearest to the winning point is moved onto it where it stays on every face around it
+   (a node inside the face, or on the B-rep edge moved along it); otherwise the point becomes a new
+   node, splitting the triangle of its face that holds it (or the mesh edge along its B-rep edge).
+   Moving a node on a B-rep edge into one of its faces dragged the other face's triangles over the
+   first (``trj7_b1-ec-214`` turned (32.9, 100.0, -141.2): the edge node below a dome's top moved
+   onto it, and the top plane's ring bridged 0.05 mm inside the section).
 
 Local apexes and dimples (``snap_local_extremes``) get the same treatment where a plane passes
 between the node and the exact extreme: otherwise that plane's small loop would be missed.
@@ -33,26 +34,55 @@ _BAND_DEFLECTIONS = 2.0  # an apex is at most one deflection beyond the node nex
 _SAME_POINT_MM = 1e-7  # a node closer than this to its exact point keeps its (u, v)
 _AT_NODE_MM = 1e-6  # an extreme this close to a node is put on that node (no new node)
 _ON_TRI_EDGE = 1e-6  # a barycentric coordinate at most this: the point is on the triangle's edge
+_ON_FACE_MM = 1e-4  # an extreme this close to a face's surface (projected) lies on it
 
 
 def snap_extremes(meshes: list[TopoMesh]) -> tuple[float, float]:
-    """Make the exact lowest point a node of one mesh, and the highest (``_make_node``). Returns
-    (zmin, zmax)."""
-    lo = _extreme(meshes, sign=1.0)
-    lo_z = _make_node(meshes[lo[0]], lo[1], lo[2], sign=1.0)[2]
-    hi = _extreme(meshes, sign=-1.0)
-    hi_z = _make_node(meshes[hi[0]], hi[1], hi[2], sign=-1.0)[2]
-    return float(lo_z), float(hi_z)
+    """Make the exact lowest point a node of one mesh, and the highest: the node nearest to it moved
+    onto it where it stays on its faces (``_stays_on_its_faces``), else a new node (``_make_node``).
+    Returns (zmin, zmax)."""
+    out = []
+    for sign in (1.0, -1.0):
+        mi, where, point, nearest = _extreme(meshes, sign=sign)
+        mesh = meshes[mi]
+        if where[0] == "node":
+            pass  # (the extreme node itself)
+        elif _stays_on_its_faces(mesh, nearest, point):
+            _move_node(mesh, nearest, point)
+        else:
+            point = _make_node(mesh, where, point, sign=sign)
+        out.append(float(point[2]))
+    return out[0], out[1]
+
+
+def _stays_on_its_faces(mesh: TopoMesh, node: int, p: np.ndarray) -> bool:
+    """Whether ``node`` moved onto ``p`` stays on every face around it: ``p`` projects onto each
+    face's surface within ``_ON_FACE_MM``, inside its trim (a node inside a face, or one on a B-rep
+    edge moved along it). A node on an edge moved into one of its faces would drag the other
+    face's triangles over it."""
+    tri, corner = np.nonzero(mesh.tris == node)
+    seen: set[tuple[int, float, float]] = set()
+    for t, c in zip(tri.tolist(), corner.tolist(), strict=True):
+        key = (int(mesh.tri_face[t]), *mesh.tri_uv[t, c].tolist())
+        if key in seen:
+            continue
+        seen.add(key)
+        fe = mesh.faces[key[0]]
+        u, v = fe.uv_near(tuple(p), key[1:])
+        if np.linalg.norm(np.subtract(fe.point(u, v), p)) > _ON_FACE_MM or not fe.contains(u, v, 1e-7):
+            return False
+    return True
 
 
 # where an extreme lies: ("node", node), ("face", face, (u, v)) or ("edge", edge, curve parameter)
 Where = tuple
 
 
-def _extreme(meshes: list[TopoMesh], *, sign: float) -> tuple[int, Where, np.ndarray]:
-    """(mesh index, where, exact point) of the lowest (sign=+1) or highest (sign=-1) point."""
+def _extreme(meshes: list[TopoMesh], *, sign: float) -> tuple[int, Where, np.ndarray, int]:
+    """(mesh index, where, exact point, the node nearest to it of those near the extreme height) of
+    the lowest (sign=+1) or highest (sign=-1) point."""
     best_h = np.inf
-    best: tuple[int, Where, np.ndarray] | None = None
+    best: tuple[int, Where, np.ndarray, int] | None = None
     node_h = [sign * m.xyz[:, 2] for m in meshes]
     global_node = min(float(h.min()) for h in node_h)
     for mi, mesh in enumerate(meshes):
@@ -75,7 +105,8 @@ def _extreme(meshes: list[TopoMesh], *, sign: float) -> tuple[int, Where, np.nda
             candidates.append(_edge_extreme(mesh, ei, sign))
         hval, where, point = min(candidates, key=lambda c: c[0])
         if hval < best_h:
-            best_h, best = hval, (mi, where, point)
+            nearest = int(low_nodes[np.argmin(np.linalg.norm(mesh.xyz[low_nodes] - point, axis=1))])
+            best_h, best = hval, (mi, where, point, nearest)
     assert best is not None
     return best
 
@@ -157,8 +188,6 @@ def _make_node(mesh: TopoMesh, where: Where, p: np.ndarray, *, sign: float) -> n
     of ``p``'s B-rep edge between the two nodes either side of it, or the triangle of ``p``'s face
     that holds its (u, v) (at a point on one of that triangle's edges: that edge, on both its
     triangles). No other node moves, so no face's triangles are dragged over another face."""
-    if where[0] == "node":
-        return mesh.xyz[where[1]]
     if where[0] == "edge":
         return _node_on_edge(mesh, where[1], where[2], p)
     _, f, uv = where
