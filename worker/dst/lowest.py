@@ -187,7 +187,9 @@ def _make_node(mesh: TopoMesh, where: Where, p: np.ndarray, *, sign: float) -> n
     A node within ``_AT_NODE_MM`` of ``p`` is put on it; otherwise a new node splits the mesh edge
     of ``p``'s B-rep edge between the two nodes either side of it, or the triangle of ``p``'s face
     that holds its (u, v) (at a point on one of that triangle's edges: that edge, on both its
-    triangles). No other node moves, so no face's triangles are dragged over another face."""
+    triangles; a point of the face's border can lie inside a triangle in (u, v), where the border
+    curves away from its chord: that triangle is split, its new node exact on the face). No other
+    node moves, so no face's triangles are dragged over another face."""
     if where[0] == "edge":
         return _node_on_edge(mesh, where[1], where[2], p)
     _, f, uv = where

@@ -209,3 +209,34 @@ def test_a_closed_edges_extreme_just_across_its_seam_from_its_vertex_is_split_ex
     assert nearest < 1e-9, nearest
     assert edge_defects(mesh.tris, mesh.n_nodes) == (0, 0)
     assert np.array_equal(np.unique(mesh.tris), np.arange(mesh.n_nodes))
+
+
+@pytest.mark.parametrize("nurbs", [False, True])
+def test_a_new_node_on_a_b_rep_edge_splits_the_mesh_edge_there(tmp_path, nurbs):
+    """``lowest._make_node`` where an extreme lies on a B-rep edge between two of its nodes (the
+    middle of the highest mesh edge along an edge of ``cut_cap``): one new node at the exact point,
+    the mesh edge split into two pieces that both map to the B-rep edge, the mesh still closed,
+    every corner of the triangles around the new node on its face at its (u, v); no node moves."""
+    from worker.dst.lowest import _make_node
+
+    part = read_step(write_step(build_part("cut_cap", offset=0.3), tmp_path / "cap.step", nurbs=nurbs))
+    mesh = build_topomesh(part.solids[0], deflection=0.02, angular=C.TOPO_ANGULAR_RAD, merge_tol=1e-8)
+    (a, b), ei = max(mesh.edge_of.items(), key=lambda kv: mesh.xyz[list(kv[0]), 2].min())
+    ev = mesh.edges[ei]
+    s = 0.5 * (ev.parameter_of(tuple(mesh.xyz[a])) + ev.parameter_of(tuple(mesh.xyz[b])))
+    p = np.array(ev.point(s))
+    before, n0 = mesh.xyz.copy(), mesh.n_nodes
+    got = _make_node(mesh, ("edge", ei, s), p, sign=-1.0)
+    assert mesh.n_nodes == n0 + 1
+    np.testing.assert_array_equal(mesh.xyz[:n0], before)
+    np.testing.assert_array_equal(got, p)
+    np.testing.assert_array_equal(mesh.xyz[n0], p)
+    assert (a, b) not in mesh.edge_of
+    assert mesh.edge_of[(min(a, n0), max(a, n0))] == ei == mesh.edge_of[(min(b, n0), max(b, n0))]
+    assert edge_defects(mesh.tris, mesh.n_nodes) == (0, 0)
+    around = np.flatnonzero((mesh.tris == n0).any(axis=1))
+    assert len(np.unique(mesh.tri_face[around])) == 2  # both faces of the edge
+    for t in around.tolist():
+        fe = mesh.faces[int(mesh.tri_face[t])]
+        for node, (u, v) in zip(mesh.tris[t].tolist(), mesh.tri_uv[t].tolist(), strict=True):
+            assert np.linalg.norm(np.subtract(fe.point(u, v), mesh.xyz[node])) < 1e-6
