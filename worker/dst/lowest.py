@@ -47,7 +47,9 @@ def snap_extremes(meshes: list[TopoMesh]) -> tuple[float, float]:
         mesh = meshes[mi]
         if where[0] == "node":
             pass  # (the extreme node itself)
-        elif _stays_on_its_faces(mesh, nearest, point):
+        elif np.linalg.norm(mesh.xyz[nearest] - point) < _AT_NODE_MM or _stays_on_its_faces(
+            mesh, nearest, point
+        ):
             _move_node(mesh, nearest, point)
         else:
             point = _make_node(mesh, where, point, sign=sign)
@@ -180,12 +182,13 @@ def _edge_extreme(mesh: TopoMesh, ei: int, sign: float) -> tuple[float, Where, n
 
 
 def _make_node(mesh: TopoMesh, where: Where, p: np.ndarray, *, sign: float) -> np.ndarray:
-    """Make the exact extreme ``p`` (found at ``where``) a node of ``mesh``, in place, and return
-    the node's point: ``p``, or, where ``p`` lies on the border of its face's triangles, the
-    extreme of the B-rep edge there (within the mesh's resolution of ``p``).
+    """Make the exact extreme ``p`` (found at ``where``, farther than ``_AT_NODE_MM`` from every node
+    near it: ``snap_extremes`` puts such a node on it) a node of ``mesh``, in place, and return the
+    node's point: ``p``, or, where ``p`` lies on the border of its face's triangles, the extreme of
+    the B-rep edge there (within the mesh's resolution of ``p``).
 
-    A node within ``_AT_NODE_MM`` of ``p`` is put on it; otherwise a new node splits the mesh edge
-    of ``p``'s B-rep edge between the two nodes either side of it, or the triangle of ``p``'s face
+    A new node splits the mesh edge of ``p``'s B-rep edge between the two nodes either side of it,
+    or the triangle of ``p``'s face
     that holds its (u, v) (at a point on one of that triangle's edges: that edge, on both its
     triangles; a point of the face's border can lie inside a triangle in (u, v), where the border
     curves away from its chord: that triangle is split, its new node exact on the face). No other
@@ -195,10 +198,6 @@ def _make_node(mesh: TopoMesh, where: Where, p: np.ndarray, *, sign: float) -> n
     _, f, uv = where
     t, bary, quv = _triangle_at(mesh, f, uv)
     corners = mesh.tris[t]
-    near = int(np.argmin(np.linalg.norm(mesh.xyz[corners] - p, axis=1)))
-    if np.linalg.norm(mesh.xyz[corners[near]] - p) < _AT_NODE_MM:
-        _move_node(mesh, int(corners[near]), p)
-        return p
     if bary.min() > _ON_TRI_EDGE:
         split_triangle(mesh, t, p, quv)
         return p
@@ -221,14 +220,9 @@ def _make_node(mesh: TopoMesh, where: Where, p: np.ndarray, *, sign: float) -> n
 
 def _node_on_edge(mesh: TopoMesh, ei: int, s: float, p: np.ndarray) -> np.ndarray:
     """Make ``p``, at parameter ``s`` of B-rep edge ``ei``, a node: a new one splitting the mesh edge
-    along ``ei`` whose span holds ``s``; at (or within ``_AT_NODE_MM`` of) a node, that node, put on
-    ``p`` (the curve's end, where a loose file's vertex lies off it within its tolerance)."""
+    along ``ei`` whose span holds ``s``; at a node's parameter (the curve's end, where a loose file's
+    vertex lies off it within its tolerance), the node of that edge nearest to ``p``, put on it."""
     ev = mesh.edges[ei]
-    nodes = sorted({n for key, e in mesh.edge_of.items() if e == ei for n in key})
-    near = min(nodes, key=lambda n: float(np.linalg.norm(mesh.xyz[n] - p)))
-    if np.linalg.norm(mesh.xyz[near] - p) < _AT_NODE_MM:
-        _move_node(mesh, near, p)
-        return p
     for (a, b), e in mesh.edge_of.items():
         if e != ei:
             continue
@@ -237,8 +231,8 @@ def _node_on_edge(mesh: TopoMesh, ei: int, s: float, p: np.ndarray) -> np.ndarra
         if span is not None and span[0] + margin < s < span[1] - margin:
             split_edges(mesh, {(a, b): p})
             return p
-    # at a node's parameter (an end of the edge): that node
-    _move_node(mesh, near, p)
+    nodes = {n for key, e in mesh.edge_of.items() if e == ei for n in key}
+    _move_node(mesh, min(nodes, key=lambda n: float(np.linalg.norm(mesh.xyz[n] - p))), p)
     return p
 
 
