@@ -477,14 +477,7 @@ class RingSampler(Crossings, Traces, RunRefiner):
         # excursions the crossings skipped: spliced into their segments' points (which the kept
         # triangles on those segments use too). Segments along an edge lying in the plane (their
         # points shared with other passes over that edge) are left alone.
-        starts: dict[int, tuple[int, int]] = {}  # vertex id -> (crossing, position in its segment)
-        twice: set[int] = set()  # vertices the loop passes twice (a node on the plane)
-        for c in cl:
-            for at, v in enumerate([self.crossing(c), *self.subdiv[c]]):
-                if v in starts:
-                    twice.add(v)
-                else:
-                    starts[v] = (c, at)
+        starts, twice = ring_passes(cl, [self.crossing(c) for c in cl], self.subdiv, nxt_pos)
         in_plane = (topo.cross_node[cross] >= 0) & (topo.cross_node[topo.succ[cross]] >= 0)
         face_of = {
             v: int(self.mesh.tri_face[topo.seg_tri[c]])
@@ -719,6 +712,36 @@ class RingSampler(Crossings, Traces, RunRefiner):
     def pinned_segment(self, c: int) -> list[int]:
         """Inner vertices of the pinned segment starting at crossing ``c`` (after ``pinned_loop``)."""
         return self.subdiv[c]
+
+
+def ring_passes(
+    cl: list[int], vid: list[int], subdiv: dict[int, list[int]], nxt_pos: np.ndarray
+) -> tuple[dict[int, tuple[int, int]], set[int]]:
+    """Where a pinned loop's ring passes each of its vertices: per vertex id, the crossing whose
+    segment starts there and its position in that segment (``vid``: each crossing's vertex,
+    ``subdiv``: each crossing's inner points, ``nxt_pos``: its successor's position in ``cl``),
+    and the vertices it passes more than once (an in-plane edge's shared points, a node the loop
+    comes back to), which have no one place.
+
+    A crossing with no segment (its vertex the next one's: a node on the plane, or merged
+    coincident crossings) is one pass over that vertex with the next crossing, whose segment
+    leaves it: that one is its start. (trj7_b1-ec-214 turned (-99.8, 126.0, -162.8) at z = 259.1:
+    seven crossings at a node 0.3 um above the plane were counted as seven passes, and the
+    segment leaving the node, folded back on itself, was never traced again.)"""
+    into_next = [not subdiv[c] and vid[i] == vid[int(nxt_pos[i])] for i, c in enumerate(cl)]
+    if all(into_next):  # (a loop all at one vertex: no segment to start from)
+        into_next = [False] * len(cl)
+    starts: dict[int, tuple[int, int]] = {}
+    twice: set[int] = set()
+    for i, c in enumerate(cl):
+        for at, v in enumerate([vid[i], *subdiv[c]]):
+            if at == 0 and into_next[i]:
+                continue  # the same pass over v as the next crossing's: counted there
+            if v in starts:
+                twice.add(v)
+            else:
+                starts[v] = (c, at)
+    return starts, twice
 
 
 def _dedupe_cyclic(vids: list[int], pool: VertexPool) -> list[int]:

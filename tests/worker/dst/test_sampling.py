@@ -11,7 +11,7 @@ from OCP.GeomAbs import GeomAbs_Cone, GeomAbs_Plane
 from worker.dst import constants as C
 from worker.dst.chords import point_segment_distance
 from worker.dst.pipeline import bbox_diagonal, topo_deflection
-from worker.dst.sampling import RingSampler, VertexPool
+from worker.dst.sampling import RingSampler, VertexPool, ring_passes
 from worker.dst.sections import cut_topology
 from worker.dst.step_io import read_step
 from worker.dst.topomesh import build_topomesh
@@ -740,3 +740,36 @@ def test_a_runs_samples_at_one_point_are_dropped_against_the_point_kept_before_a
     chained = [[far[0], far[1]], [far[1], far[2]], [far[2], far[0]]]
     assert RunRefiner._without_repeats(host, chained) is chained
     assert host.stats.repeat_samples == 3
+
+
+def _loop_passes(crossings: list[tuple[int, list[int]]]) -> tuple[dict[int, tuple[int, int]], set[int]]:
+    """``ring_passes`` of a simple loop given as (crossing vertex, inner points) in order, the
+    crossings numbered 10, 11, ..."""
+    cl = [10 + i for i in range(len(crossings))]
+    subdiv = {c: inner for c, (_, inner) in zip(cl, crossings, strict=True)}
+    nxt_pos = (np.arange(len(cl)) + 1) % len(cl)
+    return ring_passes(cl, [v for v, _ in crossings], subdiv, nxt_pos)
+
+
+def test_crossings_without_segments_at_a_node_are_one_pass_started_by_the_segment_leaving_it():
+    # node 100 holds five crossings in a row (the last two wrapping round the list's end), four
+    # with no segment; the fourth leaves it through 200, 201 to crossing 101
+    starts, twice = _loop_passes(
+        [(100, []), (100, []), (100, []), (100, [200, 201]), (101, [202]), (100, [])]
+    )
+    assert twice == set()
+    assert starts == {100: (13, 0), 200: (13, 1), 201: (13, 2), 101: (14, 0), 202: (14, 1)}
+
+
+def test_a_vertex_the_loop_comes_back_to_has_no_one_place():
+    starts, twice = _loop_passes([(100, [200]), (101, [201]), (100, [202]), (102, [])])
+    assert twice == {100}
+    assert starts[101] == (11, 0) and starts[102] == (13, 0)
+    # a segment with no inner points between two different crossings is a pass of its own
+    starts, twice = _loop_passes([(100, []), (101, []), (102, [])])
+    assert twice == set() and starts == {100: (10, 0), 101: (11, 0), 102: (12, 0)}
+
+
+def test_a_loop_all_at_one_vertex_keeps_every_crossing():
+    starts, twice = _loop_passes([(100, []), (100, [])])
+    assert starts == {100: (10, 0)} and twice == {100}
