@@ -37,8 +37,12 @@ from worker.dst.step_io import LoadedPart
 from worker.dst.topomesh import build_topomesh
 
 # Deflections (times the one asked for) tried in turn for the reference's topology mesh: BRepMesh's
-# result at some deflections is not a closed manifold on some files, at others it is.
-RETRY_DEFLECTIONS = (1.0, 0.7, 1.4, 2.0)
+# result at some deflections is not a closed manifold on some files, at others it is. The coarser
+# one first (still finer than the DST build's at the report's half of it): BRepMesh's time can grow
+# far faster than its triangles. trj7_b1-ec-214 turned (-99.8, 126.0, -162.8), in a process that
+# had not meshed it before (a job's reference helper): 0.5 s at 0.02 mm, 8-10 s at 0.01 mm (a face
+# left unmeshed), 1.2 s at 0.014 mm, and more than 15 minutes at 0.007 mm (stopped).
+RETRY_DEFLECTIONS = (1.0, 1.4, 0.7, 2.0)
 
 # The exact sections of a plane through a flat face are taken a small offset (mm) above and below it:
 # nearly the limits of the section from either side. A surface meeting the face at a slope moves by

@@ -396,7 +396,8 @@ def test_reference_topology_retries_another_deflection(tmp_path, monkeypatch):
     monkeypatch.setattr(reference, "_topomesh", picky)
     ref = exact_sections(part, np.array([1.1, 5.1]), chord=1e-3, segment_length=2.0, deflection=0.01)
     assert tried == pytest.approx([0.01 * f for f in reference.RETRY_DEFLECTIONS[:3]])
-    assert "deflection 0.014 mm" in ref.method
+    assert tried[1] > tried[0] > tried[2]  # the coarser retry first, then the finer one
+    assert "deflection 0.007 mm" in ref.method
     assert ref.perimeters() == pytest.approx([80.0, 40.0])
     tried.clear()
     monkeypatch.setattr(reference, "RETRY_DEFLECTIONS", (1.0, 2.0))
