@@ -477,7 +477,7 @@ class RingSampler(Crossings, Traces, RunRefiner):
         # excursions the crossings skipped: spliced into their segments' points (which the kept
         # triangles on those segments use too). Segments along an edge lying in the plane (their
         # points shared with other passes over that edge) are left alone.
-        starts, twice = ring_passes(cl, [self.crossing(c) for c in cl], self.subdiv, nxt_pos)
+        starts, twice = ring_passes(cl, vids, self.subdiv, nxt_pos)
         in_plane = (topo.cross_node[cross] >= 0) & (topo.cross_node[topo.succ[cross]] >= 0)
         face_of = {
             v: int(self.mesh.tri_face[topo.seg_tri[c]])
