@@ -182,6 +182,33 @@ def kinked_prism(corners, height: float):
     return BRepPrimAPI_MakePrism(face, gp_Vec(0, 0, height)).Shape()
 
 
+def shortest_edge(solid) -> float:
+    from OCP.BRepGProp import BRepGProp
+    from OCP.GProp import GProp_GProps
+    from OCP.TopAbs import TopAbs_EDGE
+    from OCP.TopExp import TopExp_Explorer
+
+    shortest = float("inf")
+    exp = TopExp_Explorer(solid, TopAbs_EDGE)
+    while exp.More():
+        props = GProp_GProps()
+        BRepGProp.LinearProperties_s(exp.Current(), props)
+        shortest = min(shortest, props.Mass())
+        exp.Next()
+    return shortest
+
+
+def notched_box():
+    """A 10 mm cube with a groove 2 um deep and 4 um wide across one side: edges of 2 and 4 um."""
+    import build123d as bd
+    from OCP.TopAbs import TopAbs_SOLID
+    from OCP.TopExp import TopExp_Explorer
+    from OCP.TopoDS import TopoDS
+
+    shape = bd.Box(10, 10, 10) - bd.Pos(5, 0, 0) * bd.Box(0.004, 20, 0.004)
+    return TopoDS.Solid(TopExp_Explorer(shape.wrapped, TopAbs_SOLID).Current())
+
+
 def write_step(shape, path: Path, *, nurbs: bool = True, unit: str | None = None) -> Path:
     """Write ``shape`` to STEP, converted to B-splines (``BRepBuilderAPI_NurbsConvert``) by default."""
     from OCP.BRepBuilderAPI import BRepBuilderAPI_NurbsConvert

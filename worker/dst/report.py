@@ -343,9 +343,18 @@ def slice_and_report(
             side = _start_occt_side(tasks, part, baselines, nice=BACKGROUND_NICE, exact=False)
             if tasks.limit >= 2:
                 reference = tasks.submit(_exact_reference, part, params, None, False, nice=BACKGROUND_NICE)
+        as_read = list(part.solids)
         mesh = slice_part(part, params, progress=lambda s, f: report(s, 0.5 * f), t0=t0, helper=tasks.forked)
         if on_mesh is not None:
             on_mesh(mesh)
+        if _replaced(as_read, part.solids):
+            # The build repaired a solid OCCT could not mesh and built the mesh from the repaired
+            # one (``slice_part``): the helpers forked with the file's. The report measures the mesh
+            # against the solid it was built from, as a report after the build does: made again.
+            for task in (side, reference):
+                if task is not None:
+                    task.kill()
+            side = reference = None
         # the part's exact box and volume here, while the helpers work: the niced OCCT helper would
         # do them last, starved by the measuring (at nice 0) it holds up
         extent = None
@@ -367,6 +376,11 @@ def slice_and_report(
             extent,
         )
     return mesh, out
+
+
+def _replaced(before: Sequence, after: Sequence) -> bool:
+    """Whether any of the solids ``before`` is no longer the one in its place ``after``."""
+    return any(not a.IsSame(b) for a, b in zip(before, after, strict=True))
 
 
 def _build_report(

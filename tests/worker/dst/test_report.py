@@ -960,6 +960,54 @@ def test_a_reference_planned_for_other_planes_than_the_builds_is_made_again(hemi
     assert _numbers(report) == _numbers(two_steps)
 
 
+@pytest.mark.parametrize("gives_up", ["reference", "baselines"])
+def test_a_job_measures_the_solid_its_build_repaired(gives_up, monkeypatch, tmp_path):
+    """A solid OCCT cannot mesh is repaired by the build, which meshes the repair (``slice_part``;
+    BRepMesh gave up on trj7_b1-ec-214's face 354, whose wire has edges of a few um). A job's
+    helpers fork with the file's solid before the build: their reference and baselines are made
+    again from the repaired solid, so the job's report is the one made after the build, from the
+    solid the mesh was built from. Here the notched cube's 2 um edges make a mesher give up, in
+    the build and in the helper (``gives_up``): that helper's error failed the job before."""
+    from tests.conftest import notched_box, shortest_edge, write_step
+    from worker.dst import pipeline, reference
+    from worker.dst import report as report_mod
+    from worker.dst.errors import TessellationError, UnmeshedFaceError
+    from worker.dst.forked import fork_available
+    from worker.dst.report import slice_and_report
+
+    if not fork_available():
+        pytest.skip("fork is used on Linux only: without it the report is made after the build")
+    path = write_step(notched_box(), tmp_path / "notched.step", nurbs=False)
+    assert shortest_edge(read_step(path).solids[0]) < 0.0025
+    real_topomesh, real_baseline = pipeline.build_topomesh, report_mod.conventional_mesh
+
+    def topomesh(solid, **kw):
+        if shortest_edge(solid) < 0.0025:
+            raise UnmeshedFaceError("face 3 could not be meshed (degenerate or invalid face)")
+        return real_topomesh(solid, **kw)
+
+    def baseline(part, preset, **kw):
+        if shortest_edge(part.solids[0]) < 0.0025:
+            raise TessellationError("BRepMesh left a face without triangles")
+        return real_baseline(part, preset, **kw)
+
+    monkeypatch.setattr(pipeline, "build_topomesh", topomesh)
+    if gives_up == "reference":
+        monkeypatch.setattr(reference, "build_topomesh", topomesh)
+    else:
+        monkeypatch.setattr(report_mod, "conventional_mesh", baseline)
+    params = SliceParams(layer_height=0.2)
+    mesh, report = slice_and_report(path, params, baselines=["occt_fast"], processes=2)
+    assert any("face 3 could not be meshed" in w and "repaired" in w for w in mesh.warnings)
+    assert shortest_edge(mesh.part.solids[0]) > 0.003
+    two_steps = build_report(mesh.part, params, file_name=str(path), dst=mesh, baselines=["occt_fast"])
+    assert [m.name for m in report.meshes] == ["dst", "occt_fast"]
+    assert _numbers(report) == _numbers(two_steps)
+    assert report.input == two_steps.input and report.warnings == two_steps.warnings
+    dst = report.meshes[0]
+    assert dst.summary.max_vertex_dev < 1e-4 and dst.summary.layers_loop_mismatch == 0
+
+
 def test_a_crash_while_computing_the_reference_in_a_helper_ends_the_job_cleanly(hemisphere, monkeypatch):
     """OCCT dying in the job's reference helper is an error saying so, not a dead job process."""
     import faulthandler

@@ -1,6 +1,7 @@
 import numpy as np
 import pytest
 
+from tests.conftest import notched_box, shortest_edge
 from worker.dst.errors import EmptyGeometryError, NotASolidError, StepReadError
 from worker.dst.step_io import LoadedPart, orient, read_step, rotation_matrix, sniff_step, solid_volume
 
@@ -118,33 +119,6 @@ def test_corners_joined_by_a_coarse_tolerance_are_split(tmp_path, monkeypatch):
     np.testing.assert_allclose(perimeter, 82.0, rtol=1e-9)
 
 
-def _shortest_edge(solid) -> float:
-    from OCP.BRepGProp import BRepGProp
-    from OCP.GProp import GProp_GProps
-    from OCP.TopAbs import TopAbs_EDGE
-    from OCP.TopExp import TopExp_Explorer
-
-    shortest = float("inf")
-    exp = TopExp_Explorer(solid, TopAbs_EDGE)
-    while exp.More():
-        props = GProp_GProps()
-        BRepGProp.LinearProperties_s(exp.Current(), props)
-        shortest = min(shortest, props.Mass())
-        exp.Next()
-    return shortest
-
-
-def _notched_box():
-    """A 10 mm cube with a groove 2 um deep and 4 um wide across one side: edges of 2 and 4 um."""
-    import build123d as bd
-    from OCP.TopAbs import TopAbs_SOLID
-    from OCP.TopExp import TopExp_Explorer
-    from OCP.TopoDS import TopoDS
-
-    shape = bd.Box(10, 10, 10) - bd.Pos(5, 0, 0) * bd.Box(0.004, 20, 0.004)
-    return TopoDS.Solid(TopExp_Explorer(shape.wrapped, TopAbs_SOLID).Current())
-
-
 def test_wire_repair_drops_edges_under_its_precision_and_keeps_the_volume():
     import build123d as bd
 
@@ -153,10 +127,10 @@ def test_wire_repair_drops_edges_under_its_precision_and_keeps_the_volume():
     cube = bd.Box(10, 10, 10).solids()[0].wrapped
     assert heal_wires(cube, 0.01) is None  # nothing to repair
 
-    notched = _notched_box()
-    assert _shortest_edge(notched) == pytest.approx(0.002, rel=1e-6)
+    notched = notched_box()
+    assert shortest_edge(notched) == pytest.approx(0.002, rel=1e-6)
     healed, change = heal_wires(notched, 0.01)
-    assert _shortest_edge(healed) > 0.01
+    assert shortest_edge(healed) > 0.01
     assert solid_volume(healed) == pytest.approx(solid_volume(notched), rel=1e-6)
     assert change < 1e-6
 
@@ -173,21 +147,21 @@ def test_a_face_the_mesher_cannot_mesh_is_retried_after_the_wire_repair(monkeypa
     real = pipeline.build_topomesh
 
     def picky(solid, **kw):
-        if _shortest_edge(solid) < 0.0025:
+        if shortest_edge(solid) < 0.0025:
             raise UnmeshedFaceError("face 3 could not be meshed (degenerate or invalid face)")
         return real(solid, **kw)
 
     monkeypatch.setattr(pipeline, "build_topomesh", picky)
-    part = LoadedPart(solids=[_notched_box()], source_units=["MM"])
+    part = LoadedPart(solids=[notched_box()], source_units=["MM"])
     mesh = pipeline.slice_part(part, SliceParams(layer_height=0.2))
     assert_watertight(mesh)
-    assert _shortest_edge(mesh.part.solids[0]) > 0.003  # the 2 um edges are gone from the part itself
+    assert shortest_edge(mesh.part.solids[0]) > 0.003  # the 2 um edges are gone from the part itself
     assert any("face 3 could not be meshed" in w and "repaired" in w for w in mesh.warnings)
 
     monkeypatch.setattr(pipeline, "heal_wires", lambda solid, precision: None)
     with pytest.raises(UnmeshedFaceError):
         pipeline.slice_part(
-            LoadedPart(solids=[_notched_box()], source_units=["MM"]), SliceParams(layer_height=0.2)
+            LoadedPart(solids=[notched_box()], source_units=["MM"]), SliceParams(layer_height=0.2)
         )
 
 
