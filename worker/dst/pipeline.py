@@ -96,7 +96,7 @@ def slice_part(
 
     diag, loose_height = bbox_diagonal(part)
     plan_planes(height=loose_height, params=params)  # refuse absurd plane counts before any meshing
-    deflection = min(topo_deflection(diag), params.chord_error)
+    deflection = build_deflection(diag, params)
     t = time.perf_counter()
     meshes = []
     topomesh = functools.partial(
@@ -347,6 +347,11 @@ def estimated_triangles(topo, params: SliceParams) -> float:
 def topo_deflection(diag: float) -> float:
     """BRepMesh deflection (mm) of the topology mesh of a part with this bounding-box diagonal."""
     return min(C.TOPO_DEFLECTION_MAX_MM, max(C.TOPO_DEFLECTION_MIN_MM, C.TOPO_DEFLECTION_REL * diag))
+
+
+def build_deflection(diag: float, params: SliceParams) -> float:
+    """The DST build's topology mesh deflection (mm), and the precision it repairs a solid to."""
+    return min(topo_deflection(diag), params.chord_error)
 
 
 def bbox_diagonal(part: LoadedPart) -> tuple[float, float]:

@@ -26,23 +26,26 @@ from OCP.TopExp import TopExp_Explorer
 from OCP.TopoDS import TopoDS
 
 from worker.dst import constants as C
-from worker.dst.errors import TessellationError
+from worker.dst.errors import TessellationError, UnmeshedFaceError
 from worker.dst.forked import TaskGroup, idle_cores
 from worker.dst.lowest import snap_extremes
 from worker.dst.pipeline import bbox_diagonal
 from worker.dst.ridges import prepare_extremes
 from worker.dst.sampling import RingSampler, VertexPool
 from worker.dst.sections import cut_topology, section_pairs_per_plane
-from worker.dst.step_io import LoadedPart
+from worker.dst.step_io import LoadedPart, heal_wires
 from worker.dst.topomesh import build_topomesh
 
 # Deflections (times the one asked for) tried in turn for the reference's topology mesh: BRepMesh's
 # result at some deflections is not a closed manifold on some files, at others it is. The coarser
 # one first (still finer than the DST build's at the report's half of it): BRepMesh's time can grow
-# far faster than its triangles. trj7_b1-ec-214 turned (-99.8, 126.0, -162.8), in a process that
-# had not meshed it before (a job's reference helper): 0.5 s at 0.02 mm, 8-10 s at 0.01 mm (a face
-# left unmeshed), 1.2 s at 0.014 mm, and more than 15 minutes at 0.007 mm (stopped).
+# far faster than its triangles. Where the first ``REPAIR_AFTER`` leave a face unmeshed, the solid's
+# face boundaries are repaired as the DST build repairs them (``heal_wires``) before any finer one:
+# trj7_b1-ec-214 turned (-99.8, 126.0, -162.8) as read, whose face 354 the build repairs, has a
+# face unmeshed at 0.01 mm (8 s) and 0.014 mm (1.6 s) and took more than 15 minutes at 0.007 mm
+# (stopped); repaired, it meshes at 0.01 mm in 2 s.
 RETRY_DEFLECTIONS = (1.0, 1.4, 0.7, 2.0)
+REPAIR_AFTER = 2
 
 # The exact sections of a plane through a flat face are taken a small offset (mm) above and below it:
 # nearly the limits of the section from either side. A surface meeting the face at a slope moves by
@@ -73,6 +76,8 @@ class ExactSections:
     unresolved : (plane, length in mm) of each segment the sampling left over ``chord`` after its
         last round (``RingSampler.keep_unresolved``): between its exact ends the reference is
         straight there
+    repairs : (solid index, what was done) where OCCT could not mesh a solid as read and the
+        reference is of its repair (``_reference_topomesh``)
     """
 
     heights: np.ndarray
@@ -86,6 +91,8 @@ class ExactSections:
     below_loops: dict[int, list[np.ndarray]]
     below_corners: dict[int, list[np.ndarray]]
     unresolved: list[tuple[int, float]] = field(default_factory=list)
+    # (solid index, message) of each solid the reference repaired before it could mesh it
+    repairs: list[tuple[int, str]] = field(default_factory=list)
 
     def perimeters(self) -> np.ndarray:
         return np.array([sum(closed_length(p) for p in ls) for ls in self.loops])
@@ -98,21 +105,27 @@ def exact_sections(
     chord: float,
     segment_length: float,
     deflection: float,
+    repair_precision: float | None = None,
     parallel: bool = True,
     helper: bool = True,
 ) -> ExactSections:
     """Dense exact sections of ``part`` at ``heights`` above its exact lowest point.
 
     ``heights`` may be a function of the part's exact height (highest minus lowest point).
+    ``repair_precision``: a solid whose topology mesh leaves a face unmeshed is repaired to it as
+    the DST build repairs one (its mesh's deflection), if that helps (None: never).
     ``parallel``: the topology mesh's faces on OCCT's thread pool (never in a forked process).
     ``helper``: the sampling of the upper planes in a forked helper process (see ``_sample``); the
     sections are the same either way.
     """
     diag, _ = bbox_diagonal(part)  # merge tolerance relative to the whole part, as in the DST build
-    meshes, used = zip(
-        *[_reference_topomesh(s, deflection, diag, parallel) for s in part.solids], strict=True
-    )
-    meshes = list(meshes)
+    meshes, used, repairs = [], [], []
+    for i, solid in enumerate(part.solids):
+        mesh, d, repair = _reference_topomesh(solid, deflection, diag, parallel, repair_precision)
+        meshes.append(mesh)
+        used.append(d)
+        if repair is not None:
+            repairs.append((i, repair))
     zmin, zmax = snap_extremes(meshes)
     if callable(heights):
         heights = heights(zmax - zmin)
@@ -141,6 +154,7 @@ def exact_sections(
         below_loops={j: [lp for lp, _ in ps] for j, ps in pairs_below.items()},
         below_corners={j: [c for _, c in ps] for j, ps in pairs_below.items()},
         unresolved=unresolved,
+        repairs=repairs,
         method=(
             f"sections found on a topology mesh of deflection {_deflections(used)} mm, their "
             "points solved exactly on the B-rep faces and edges (Newton / Brent, |z - plane| < "
@@ -368,12 +382,40 @@ def _deflections(used) -> str:
     return " / ".join(f"{d:.3g}" for d in values)
 
 
-def _reference_topomesh(solid, deflection: float, diag: float, parallel: bool = True):
+def _reference_topomesh(
+    solid, deflection: float, diag: float, parallel: bool = True, repair_precision: float | None = None
+):
     """The solid's topology mesh at ``deflection``, or, where BRepMesh's mesh there is not a closed
     manifold (it depends on the deflection: 11752.stp at half the DST build's), at the next of
-    ``RETRY_DEFLECTIONS`` times it that is. Returns the mesh and the deflection used."""
-    return _first_that_works(
-        lambda d: (_topomesh(solid, d, diag, parallel), d), tuple(deflection * f for f in RETRY_DEFLECTIONS)
+    ``RETRY_DEFLECTIONS`` times it that is. Where the first ``REPAIR_AFTER`` of them leave a face
+    unmeshed and ``repair_precision`` is given, the solid's face boundaries are repaired to it
+    (``heal_wires``, as the DST build repairs a solid it cannot mesh) and, if that changed
+    anything, the repair is meshed instead, from the first deflection again. Returns the mesh, the
+    deflection used, and what was repaired (None: the solid as it is)."""
+    factors = tuple(deflection * f for f in RETRY_DEFLECTIONS)
+
+    def mesh_of(shape):
+        return lambda d: (_topomesh(shape, d, diag, parallel), d)
+
+    unmeshed = last = None
+    for d in factors[:REPAIR_AFTER]:
+        try:
+            return (*mesh_of(solid)(d), None)
+        except TessellationError as exc:
+            last = exc
+            if isinstance(exc, UnmeshedFaceError):
+                unmeshed = unmeshed or exc
+    healed = None if unmeshed is None or repair_precision is None else heal_wires(solid, repair_precision)
+    if healed is None:
+        if len(factors) <= REPAIR_AFTER:
+            raise last
+        return (*_first_that_works(mesh_of(solid), factors[REPAIR_AFTER:]), None)
+    repaired, change = healed
+    return (
+        *_first_that_works(mesh_of(repaired), factors),
+        f"{unmeshed}; its face boundaries were repaired (gaps closed, edges under {repair_precision:.2g} mm "
+        f"dropped; volume changed by {change:.1e} of itself), as the DST build repairs such a solid, and "
+        "the exact reference is of the repaired solid",
     )
 
 

@@ -49,6 +49,7 @@ from worker.dst.params import SliceParams
 from worker.dst.pipeline import (
     DstMesh,
     bbox_diagonal,
+    build_deflection,
     simplification_warnings,
     slice_part,
     topo_deflection,
@@ -245,6 +246,7 @@ def _exact_reference(
         chord=chord,
         segment_length=REFERENCE_SEGMENT_MM,
         deflection=0.5 * topo_deflection(diag),  # finer than the DST build's: its own topology
+        repair_precision=build_deflection(diag, params),  # as the build repairs
         parallel=parallel,
         helper=helper,
     )
@@ -609,6 +611,7 @@ def _build_report(
             warnings.append(loose)
     if short := unresolved_reference_warning(ref.unresolved, planes_z, chord):
         warnings.append(short)
+    warnings.extend(f"solid {i + 1}: {repair}" for i, repair in ref.repairs)
     box_lo, box_hi = occt.xy_box
     warnings.extend(placement_warnings(todo, box_lo, box_hi))
 

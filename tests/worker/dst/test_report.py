@@ -322,7 +322,9 @@ def _cut_of(mesh):
     from worker.dst.reference import _reference_topomesh
     from worker.dst.sections import cut_topology
 
-    topomesh, _ = _reference_topomesh(mesh.part.solids[0], 0.01, bbox_diagonal(mesh.part)[0], parallel=False)
+    topomesh, _, _ = _reference_topomesh(
+        mesh.part.solids[0], 0.01, bbox_diagonal(mesh.part)[0], parallel=False
+    )
     world = topomesh.xyz[:, 2].min() + mesh.planes.section_z
     return cut_topology(topomesh, world, on_plane_tol=C.ON_PLANE_TOL_MM, noise_tol=np.zeros(len(world)))
 
@@ -403,6 +405,53 @@ def test_reference_topology_retries_another_deflection(tmp_path, monkeypatch):
     monkeypatch.setattr(reference, "RETRY_DEFLECTIONS", (1.0, 2.0))
     with pytest.raises(TessellationError):
         exact_sections(part, np.array([1.1]), chord=1e-3, segment_length=2.0, deflection=0.01)
+
+
+def test_reference_repairs_a_solid_it_cannot_mesh_as_the_build_does(tmp_path, monkeypatch):
+    """Where OCCT leaves a face of the solid as read unmeshed at the reference's first two
+    deflections (trj7_b1-ec-214 turned (-99.8, 126.0, -162.8): its face 354, which the DST build
+    repairs; the next, finer deflection took more than 15 minutes there), the reference repairs the
+    solid's face boundaries as the build does and is made from the repair, and the report says so.
+    Here the notched cube's 2 um edges make the mesher give up; its sections are the cube's squares.
+    A report of a mesh alone (``dst report``: no build repaired the solid) failed before."""
+    from tests.conftest import notched_box, shortest_edge, write_step
+    from worker.dst import reference
+    from worker.dst.errors import UnmeshedFaceError
+
+    build, tried = reference._topomesh, []
+
+    def picky(solid, deflection, diag, parallel=True):
+        tried.append((deflection, shortest_edge(solid) > 0.0025))
+        if not tried[-1][1]:
+            raise UnmeshedFaceError("face 3 could not be meshed (degenerate or invalid face)")
+        return build(solid, deflection, diag, parallel)
+
+    monkeypatch.setattr(reference, "_topomesh", picky)
+    path = write_step(notched_box(), tmp_path / "notched.step", nurbs=False)
+    part = read_step(path)
+    heights = np.array([1.1, 5.1])
+    ref = exact_sections(
+        part, heights, chord=1e-3, segment_length=2.0, deflection=0.01, repair_precision=0.02
+    )
+    assert tried == [(0.01, False), (pytest.approx(0.014), False), (0.01, True)]
+    ((solid, repair),) = ref.repairs
+    assert solid == 0 and "face 3 could not be meshed" in repair and "edges under 0.02 mm dropped" in repair
+    assert ref.perimeters() == pytest.approx([40.0, 40.0], abs=1e-6)
+    tried.clear()
+    with pytest.raises(UnmeshedFaceError):  # not asked to repair: every deflection, then OCCT's error
+        exact_sections(part, heights, chord=1e-3, segment_length=2.0, deflection=0.01)
+    assert [ok for _, ok in tried] == [False] * len(reference.RETRY_DEFLECTIONS)
+
+    box = trimesh.creation.box(extents=(10, 10, 10))
+    cube = MeshInput("cube.stl", "input", np.asarray(box.vertices), np.asarray(box.faces), None, "")
+    report = build_report(
+        part, SliceParams(layer_height=0.2), file_name=path.name, meshes=[cube], baselines=[]
+    )
+    (said,) = [w for w in report.warnings if "exact reference is of the repaired solid" in w]
+    assert said.startswith("solid 1: face 3 could not be meshed")
+    (measured,) = report.meshes
+    assert measured.summary.max_vertex_dev < 1e-6 and measured.summary.max_chord_dev < 1e-6
+    assert measured.summary.layers_loop_mismatch == 0 and len(measured.layers) == 50
 
 
 @pytest.fixture(scope="module")
@@ -1249,7 +1298,7 @@ def test_a_reference_over_the_cuts_pair_limit_is_cut_in_runs_of_planes(monkeypat
         return exact_sections(part, heights, chord=chord, segment_length=2.0, deflection=0.01, helper=False)
 
     whole = sections()
-    mesh, _ = reference._reference_topomesh(part.solids[0], 0.01, 40.0)
+    mesh, _, _ = reference._reference_topomesh(part.solids[0], 0.01, 40.0)
     world = whole.zmin + heights
     per_plane = section_pairs_per_plane(mesh, world)
     assert per_plane.sum() == section_pairs(mesh, world) and (per_plane > 0).all()
