@@ -39,13 +39,12 @@ from worker.dst.topomesh import build_topomesh
 # Deflections (times the one asked for) tried in turn for the reference's topology mesh: BRepMesh's
 # result at some deflections is not a closed manifold on some files, at others it is. The coarser
 # one first (still finer than the DST build's at the report's half of it): BRepMesh's time can grow
-# far faster than its triangles. Where the first ``REPAIR_AFTER`` leave a face unmeshed, the solid's
-# face boundaries are repaired as the DST build repairs them (``heal_wires``) before any finer one:
-# trj7_b1-ec-214 turned (-99.8, 126.0, -162.8) as read, whose face 354 the build repairs, has a
-# face unmeshed at 0.01 mm (8 s) and 0.014 mm (1.6 s) and took more than 15 minutes at 0.007 mm
-# (stopped); repaired, it meshes at 0.01 mm in 2 s.
+# far faster than its triangles. Where a face is left unmeshed, the coarser ones and then the repair
+# the DST build would make come before any finer one (``_reference_topomesh``): trj7_b1-ec-214
+# turned (-99.8, 126.0, -162.8) as read, whose face 354 the build repairs, has a face unmeshed at
+# 0.01 mm (8 s), 0.014 mm (1.6 s) and 0.02 mm, and took more than 15 minutes at 0.007 mm (stopped);
+# repaired, it meshes at 0.01 mm in 2 s.
 RETRY_DEFLECTIONS = (1.0, 1.4, 0.7, 2.0)
-REPAIR_AFTER = 2
 
 # The exact sections of a plane through a flat face are taken a small offset (mm) above and below it:
 # nearly the limits of the section from either side. A surface meeting the face at a slope moves by
@@ -387,32 +386,49 @@ def _reference_topomesh(
 ):
     """The solid's topology mesh at ``deflection``, or, where BRepMesh's mesh there is not a closed
     manifold (it depends on the deflection: 11752.stp at half the DST build's), at the next of
-    ``RETRY_DEFLECTIONS`` times it that is. Where the first ``REPAIR_AFTER`` of them leave a face
-    unmeshed and ``repair_precision`` is given, the solid's face boundaries are repaired to it
-    (``heal_wires``, as the DST build repairs a solid it cannot mesh) and, if that changed
-    anything, the repair is meshed instead, from the first deflection again. Returns the mesh, the
-    deflection used, and what was repaired (None: the solid as it is)."""
-    factors = tuple(deflection * f for f in RETRY_DEFLECTIONS)
+    ``RETRY_DEFLECTIONS`` times it that is. Returns the mesh, the deflection used, and what was
+    repaired (None: the solid as it is).
+
+    Where a face was left unmeshed, the solid is not meshed finer than ``deflection`` before the
+    coarser deflections have been tried (up to the build's own, ``repair_precision``) and then,
+    if they fail too, the repair the build makes of such a solid (``heal_wires`` to
+    ``repair_precision``): if that changes the solid, its repair is meshed instead, from the first
+    deflection again. (Where the build meshes the solid as read, at its own deflection or finer
+    down to the reference's, one of those deflections meshes it here too.)"""
+    order = [deflection * f for f in RETRY_DEFLECTIONS]
 
     def mesh_of(shape):
         return lambda d: (_topomesh(shape, d, diag, parallel), d)
 
-    unmeshed = last = None
-    for d in factors[:REPAIR_AFTER]:
+    unmeshed: UnmeshedFaceError | None = None
+    last: TessellationError | None = None
+    later = list(order)
+    while later:
+        if later[0] < deflection and unmeshed is not None and repair_precision is not None:
+            break  # first the coarser ones and the repair
         try:
-            return (*mesh_of(solid)(d), None)
+            return (*mesh_of(solid)(later.pop(0)), None)
+        except UnmeshedFaceError as exc:
+            unmeshed = last = exc
         except TessellationError as exc:
             last = exc
-            if isinstance(exc, UnmeshedFaceError):
-                unmeshed = unmeshed or exc
-    healed = None if unmeshed is None or repair_precision is None else heal_wires(solid, repair_precision)
+    for d in (d for d in later if d >= deflection):
+        try:
+            return (*mesh_of(solid)(d), None)
+        except UnmeshedFaceError as exc:  # (named in the report: the build's own names its deflection's)
+            unmeshed = last = exc
+        except TessellationError as exc:
+            last = exc
+    can_repair = unmeshed is not None and repair_precision is not None
+    healed = heal_wires(solid, repair_precision) if can_repair else None
     if healed is None:
-        if len(factors) <= REPAIR_AFTER:
+        finer = tuple(d for d in later if d < deflection)
+        if not finer:
             raise last
-        return (*_first_that_works(mesh_of(solid), factors[REPAIR_AFTER:]), None)
+        return (*_first_that_works(mesh_of(solid), finer), None)
     repaired, change = healed
     return (
-        *_first_that_works(mesh_of(repaired), factors),
+        *_first_that_works(mesh_of(repaired), tuple(order)),
         f"{unmeshed}; its face boundaries were repaired (gaps closed, edges under {repair_precision:.2g} mm "
         f"dropped; volume changed by {change:.1e} of itself), as the DST build repairs such a solid, and "
         "the exact reference is of the repaired solid",

@@ -1152,3 +1152,41 @@ def test_a_caps_ring_just_below_its_apex_goes_round_it():
     path, params = _turned("mechanical/bug27453_165-174_piattello.stp", (-171.8, -177.1, -119.4))
     mesh = slice_step(path, params)
     _assert_planes_within_budget(mesh, 27.1)
+
+
+@pytest.mark.slow
+def test_reference_repairs_a_solid_occt_cannot_mesh_before_meshing_it_finer(monkeypatch):
+    """trj7_b1-ec-214 turned to (-99.8, 126.0, -162.8) as read: OCCT leaves a face unmeshed at the
+    reference's 0.01 mm, at 0.014 and at the build's 0.02 (face 354, which the DST build repairs),
+    and its next retry, 0.007 mm, ran for more than 15 minutes. The reference of a mesh alone
+    (``dst report``: no build repaired the solid) now repairs the solid as the build does before
+    any finer mesh, and names the face the build names."""
+    from OCP.BRepGProp import BRepGProp
+    from OCP.GProp import GProp_GProps
+
+    from worker.dst import reference
+    from worker.dst.pipeline import build_deflection
+    from worker.dst.step_io import orient, read_step
+
+    path, params = _turned("freeform/trj7_b1-ec-214.stp", (-99.8, 126.0, -162.8))
+    part = orient(read_step(path), params.rotation)
+    diag, _ = bbox_diagonal(part)
+    precision = build_deflection(diag, params)
+    real, tried = reference._topomesh, []
+
+    def logged(solid, deflection, diag, parallel=True):
+        props = GProp_GProps()
+        BRepGProp.VolumeProperties_s(solid, props)
+        tried.append((round(deflection, 6), props.Mass()))
+        return real(solid, deflection, diag, parallel)
+
+    monkeypatch.setattr(reference, "_topomesh", logged)
+    mesh, used, repair = reference._reference_topomesh(
+        part.solids[0], 0.5 * precision, diag, False, precision
+    )
+    assert precision == pytest.approx(0.02)
+    assert [d for d, _ in tried] == [0.01, 0.014, 0.02, 0.01] and used == pytest.approx(0.01)
+    file_volume, repaired_volume = tried[0][1], tried[-1][1]
+    assert all(v == file_volume for _, v in tried[:3]) and repaired_volume != file_volume
+    assert repair.startswith("face 354 could not be meshed") and "edges under 0.02 mm dropped" in repair
+    assert not mesh.filled_faces

@@ -408,11 +408,13 @@ def test_reference_topology_retries_another_deflection(tmp_path, monkeypatch):
 
 
 def test_reference_repairs_a_solid_it_cannot_mesh_as_the_build_does(tmp_path, monkeypatch):
-    """Where OCCT leaves a face of the solid as read unmeshed at the reference's first two
-    deflections (trj7_b1-ec-214 turned (-99.8, 126.0, -162.8): its face 354, which the DST build
-    repairs; the next, finer deflection took more than 15 minutes there), the reference repairs the
-    solid's face boundaries as the build does and is made from the repair, and the report says so.
+    """Where OCCT leaves a face of the solid as read unmeshed at the reference's deflection and the
+    coarser ones up to the build's (trj7_b1-ec-214 turned (-99.8, 126.0, -162.8): its face 354,
+    which the DST build repairs; the finer 0.7 took more than 15 minutes there), the reference
+    repairs the solid's face boundaries as the build does and is made from the repair, and the
+    report says so.
     Here the notched cube's 2 um edges make the mesher give up; its sections are the cube's squares.
+    (Without a precision to repair to, every deflection is tried, as where the mesh is not closed.)
     A report of a mesh alone (``dst report``: no build repaired the solid) failed before."""
     from tests.conftest import notched_box, shortest_edge, write_step
     from worker.dst import reference
@@ -433,7 +435,8 @@ def test_reference_repairs_a_solid_it_cannot_mesh_as_the_build_does(tmp_path, mo
     ref = exact_sections(
         part, heights, chord=1e-3, segment_length=2.0, deflection=0.01, repair_precision=0.02
     )
-    assert tried == [(0.01, False), (pytest.approx(0.014), False), (0.01, True)]
+    # the coarser deflections (to the build's 0.02) before the repair, none finer: then the repair
+    assert tried == [(0.01, False), (pytest.approx(0.014), False), (0.02, False), (0.01, True)]
     ((solid, repair),) = ref.repairs
     assert solid == 0 and "face 3 could not be meshed" in repair and "edges under 0.02 mm dropped" in repair
     assert ref.perimeters() == pytest.approx([40.0, 40.0], abs=1e-6)
