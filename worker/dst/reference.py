@@ -90,7 +90,6 @@ class ExactSections:
     below_loops: dict[int, list[np.ndarray]]
     below_corners: dict[int, list[np.ndarray]]
     unresolved: list[tuple[int, float]] = field(default_factory=list)
-    # (solid index, message) of each solid the reference repaired before it could mesh it
     repairs: list[tuple[int, str]] = field(default_factory=list)
 
     def perimeters(self) -> np.ndarray:
@@ -402,30 +401,23 @@ def _reference_topomesh(
 
     unmeshed: UnmeshedFaceError | None = None
     last: TessellationError | None = None
-    later = list(order)
-    while later:
-        if later[0] < deflection and unmeshed is not None and repair_precision is not None:
-            break  # first the coarser ones and the repair
-        try:
-            return (*mesh_of(solid)(later.pop(0)), None)
-        except UnmeshedFaceError as exc:
-            unmeshed = last = exc
-        except TessellationError as exc:
-            last = exc
-    for d in (d for d in later if d >= deflection):
+    finer: list[float] = []  # put off until after the coarser ones and the repair
+    for d in order:
+        if d < deflection and unmeshed is not None and repair_precision is not None:
+            finer.append(d)
+            continue
         try:
             return (*mesh_of(solid)(d), None)
-        except UnmeshedFaceError as exc:  # (named in the report: the build's own names its deflection's)
+        except UnmeshedFaceError as exc:  # the last one is named: the build names its own deflection's
             unmeshed = last = exc
         except TessellationError as exc:
             last = exc
     can_repair = unmeshed is not None and repair_precision is not None
     healed = heal_wires(solid, repair_precision) if can_repair else None
     if healed is None:
-        finer = tuple(d for d in later if d < deflection)
         if not finer:
             raise last
-        return (*_first_that_works(mesh_of(solid), finer), None)
+        return (*_first_that_works(mesh_of(solid), tuple(finer)), None)
     repaired, change = healed
     return (
         *_first_that_works(mesh_of(repaired), tuple(order)),
