@@ -514,6 +514,78 @@ def test_a_section_the_reference_missed_is_named_not_blamed_on_dst(torus, monkey
     assert not _gap_warnings(off)
 
 
+def _brep_gap_warnings(report: Report) -> list[str]:
+    return [w for w in report.warnings if "the B-rep leaves a gap in the section" in w]
+
+
+def test_a_gap_in_the_brep_is_named_where_the_ring_and_the_reference_bridge_it_apart(torus, monkeypatch):
+    """Where the file's faces stop short of each other at a plane (trj7_b1-ec-214 turned (-99.8,
+    126.0, -162.8): 0.3-1.6 mm gaps at six planes), no exact contour exists: the reference bridges
+    the gap straight and the DST ring follows a face's surface past its trim, both off every face,
+    0.1-0.2 mm apart. The report says the B-rep has a gap there, with the distances it measured.
+    Simulated on the torus: at one plane the reference's outer circle is cut straight across a
+    3 mm arc (its chord 0.056 mm inside the circle at the middle) and the DST ring's vertices in that
+    arc are pushed 0.05 mm outward. Either change alone is not a gap of the B-rep: the ring pushed
+    out alone is the mesh's own deviation (no warning), the reference cut alone leaves the ring on
+    the B-rep and far from it (the reference's gap, its own warning)."""
+    import worker.dst.report as report_mod
+
+    path, params, mesh = torus
+    j = len(mesh.planes) // 2
+    z = mesh.planes.section_z[j] - 5.0
+    radius = 15.0 + math.sqrt(25.0 - z * z)
+    arc = 3.0 / radius  # rad
+    real = exact_sections
+    bridge = []  # the angles of the bridge's ends
+
+    def bridged(*args, **kw):
+        ref = real(*args, **kw)
+        outer = max(range(len(ref.loops[j])), key=lambda k: closed_length(ref.loops[j][k]))
+        p, c = ref.loops[j][outer], ref.corners[j][outer]
+        angle = np.arctan2(p[:, 1], p[:, 0])
+        inside = (angle > 0.0) & (angle < arc)
+        bridge[:] = [angle[angle <= 0.0].max(), angle[angle >= arc].min()]
+        ref.loops[j][outer], ref.corners[j][outer] = p[~inside], c[~inside]
+        return ref
+
+    ring = np.flatnonzero(mesh.vertex_plane == j)
+    angle = np.arctan2(mesh.vertices[ring, 1], mesh.vertices[ring, 0])
+    r = np.linalg.norm(mesh.vertices[ring, :2], axis=1)
+    out = ring[(angle > 0.0) & (angle < arc) & (r > 15.0)]
+    moved = mesh.vertices.copy()
+    moved[out, :2] *= (1.0 + 0.05 / np.linalg.norm(moved[out, :2], axis=1))[:, None]
+    pushed = dataclasses.replace(mesh, vertices=moved)
+
+    monkeypatch.setattr(report_mod, "exact_sections", bridged)
+    gap = build_report(mesh.part, params, file_name=str(path), dst=pushed, baselines=[])
+    (dst,) = gap.meshes
+    span = bridge[1] - bridge[0]  # the ring's farthest vertex: the arc's middle, over the bridge's middle
+    sag = radius * (1.0 - math.cos(span / 2.0))
+    assert 3.0 < radius * span < 4.0
+    assert dst.layers[j].vertex_dev == pytest.approx(0.05 + sag, abs=0.002)
+    (warning,) = _brep_gap_warnings(gap)
+    assert f"at 1 plane(s) ({j};" in warning
+    off_ref, off_dst, apart = (
+        float(x)
+        for x in re.search(
+            r"([\d.]+) mm off every face\).*\(([\d.]+) mm off every face\), ([\d.]+) mm apart", warning
+        ).groups()
+    )
+    assert off_ref == pytest.approx(sag, abs=0.002)  # the bridge's middle, inside the torus
+    assert off_dst == pytest.approx(0.05, abs=0.002)
+    assert apart == pytest.approx(dst.layers[j].vertex_dev, abs=1e-3)
+    assert f"straight ({2.0 * radius * math.sin(span / 2.0):.3g} mm," in warning  # the bridge's length
+    assert not _gap_warnings(gap)
+
+    only_ref = build_report(mesh.part, params, file_name=str(path), dst=mesh, baselines=[])
+    assert not _brep_gap_warnings(only_ref)
+    assert f"at 1 plane(s) ({j};" in _gap_warnings(only_ref)[0]  # the ring on the B-rep: the reference's gap
+    monkeypatch.setattr(report_mod, "exact_sections", real)
+    only_dst = build_report(mesh.part, params, file_name=str(path), dst=pushed, baselines=[])
+    assert only_dst.meshes[0].layers[j].vertex_dev == pytest.approx(0.05, abs=1e-3)
+    assert not _brep_gap_warnings(only_dst) and not _gap_warnings(only_dst)
+
+
 def test_a_reference_whose_refinement_runs_out_of_rounds_says_so_and_still_reports(torus, monkeypatch):
     """A segment of the exact reference still over its resolution after the refinement's last round
     (trj7 turned: a corner micrometres off its face's curve) is kept and named in a warning, with
