@@ -152,13 +152,14 @@ def _slit_segments(node: np.ndarray) -> np.ndarray:
     return slit
 
 
-def self_crossings(cut: MeshCut) -> list[tuple[int, float, float]]:
+def self_crossings(cut: MeshCut, points: bool = False) -> list[tuple]:
     """Where a loop of ``cut`` crosses itself: (plane, area mm^2, length mm) of the pocket between
     each two crossing segments of one loop, the shorter way round it (inf where neither way closes:
-    an open chain, or a vertex where the loop's direction turns over, a folded strip of triangles).
-    Loops that cross other loops are not looked at (an assembly's solids may overlap). A loop whose
-    points came out of order by micrometres makes a bow tie with no pocket to speak of; one that
-    goes round a hole three times, a pocket of the hole's area."""
+    an open chain, or a vertex where the loop's direction turns over, a folded strip of triangles),
+    and with ``points`` the crossing's (x, y) too. Loops that cross other loops are not looked at
+    (an assembly's solids may overlap). A loop whose points came out of order by micrometres makes a
+    bow tie with no pocket to speak of; one that goes round a hole three times, a pocket of the
+    hole's area."""
     i, k = _crossing_segments(cut)
     if not len(i):
         return []
@@ -186,8 +187,23 @@ def self_crossings(cut: MeshCut) -> list[tuple[int, float, float]]:
                 float(np.dot(pts[:, 0], np.roll(pts[:, 1], -1)) - np.dot(pts[:, 1], np.roll(pts[:, 0], -1)))
             )
             best = min(best, (length, area))
-        out.append((int(cut.seg_plane[s]), best[1], best[0]))
+        found = (int(cut.seg_plane[s]), best[1], best[0])
+        out.append((*found, *_crossing_point(cut.seg[s], cut.seg[t])) if points else found)
     return out
+
+
+def _crossing_point(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """Where segments ``a`` and ``b`` ((2, 2) each) that cross meet; the middle of their overlap
+    where they run along each other."""
+    da, db = a[1] - a[0], b[1] - b[0]
+    denom = float(da[0] * db[1] - da[1] * db[0])
+    if abs(denom) > 1e-12 * float(np.linalg.norm(da) * np.linalg.norm(db)):
+        w = b[0] - a[0]
+        u = float(np.clip((w[0] * db[1] - w[1] * db[0]) / denom, 0.0, 1.0))
+        x, y = a[0] + u * da
+    else:
+        x, y = 0.25 * (a[0] + a[1] + b[0] + b[1])
+    return float(x), float(y)
 
 
 def loop_self_crossings(

@@ -59,8 +59,9 @@ class Measured:
     metrics: LayerMetrics
     mesh_wide: tuple[int, int, float] | None  # open edges, non-manifold edges, volume
     side: np.ndarray  # per plane: 0, or at a flat-face plane +1 (measured above the face) / -1 (below)
-    # where the cut crosses itself (``cuts.self_crossings``; looked for in the DST mesh only)
-    pockets: tuple[tuple[int, float, float], ...] = ()
+    # where the cut crosses itself (``cuts.self_crossings``: plane, area, length, x, y; looked for in
+    # the DST mesh only)
+    pockets: tuple[tuple[int, float, float, float, float], ...] = ()
 
 
 @dataclass
@@ -153,7 +154,7 @@ def measure_planes(
     looked for too."""
     v, tr = mesh.vertices, mesh.triangles
     cut = offset_cut(mesh.cut(heights, j0, j1), j0, n_planes)
-    pockets = tuple(self_crossings(cut)) if crossings else ()
+    pockets = tuple(self_crossings(cut, points=True)) if crossings else ()
     met = compare(cut, ref_set, ref_perimeter, n_planes, workers=workers)
     side = np.zeros(n_planes, dtype=np.int8)
     if below is not None:

@@ -64,7 +64,7 @@ from worker.dst.report_warnings import (
     reference_fault_warning,
     reference_gap_warnings,
     reference_needle_warning,
-    self_crossing_warning,
+    self_crossing_warnings,
     unresolved_reference_warning,
 )
 from worker.dst.step_io import LoadedPart, occt_version, orient, read_step
@@ -579,12 +579,15 @@ def _build_report(
     for r in results:
         warnings.extend(mesh_warnings(r))
     for m in todo:
-        if m.kind == "dst" and (
-            note := self_crossing_warning(
-                [p for piece in measured[id(m)] for p in piece.pockets], planes_z, params.chord_error
+        if m.kind == "dst":
+            warnings.extend(
+                self_crossing_warnings(
+                    [p for piece in measured[id(m)] for p in piece.pockets],
+                    planes_z,
+                    params.chord_error,
+                    ref.loops,
+                )
             )
-        ):
-            warnings.append(note)
     for m, r in zip(todo, results, strict=True):
         if m.kind == "dst":
             warnings.extend(

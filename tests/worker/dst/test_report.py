@@ -804,6 +804,55 @@ def test_a_dst_contour_crossing_itself_is_named_in_a_warning(hemisphere):
     assert f"at z = {mesh.planes.z[j]:.4f} mm" in warning
 
 
+def test_a_dst_contour_crossing_itself_across_a_neck_of_the_section_is_told_apart():
+    """Where the exact section pinches to a neck narrower than the chord budget (two lobes joined by
+    a stretch of zero width: trj7_b1-ec-214 turned (-99.8, 126.0, -162.8) at z = 101.7), the ring's
+    two passes along the neck cross by micrometres and the pocket the shorter way round is a whole
+    lobe: the report says the section pinches there, not that the build is at fault. A crossing
+    anywhere else (on one side of a lobe, or at a corner, where the section passes once) is the
+    build's fault, as before. The crossing points come from the cut: two passes of a neck drawn
+    0.004 mm apart at its ends cross at its middle."""
+    from worker.dst.cuts import loops_cut, self_crossings
+    from worker.dst.report_warnings import self_crossing_warnings
+
+    # lobes (0..10) x (0..10) and (12..22) x (0..10), counter-clockwise, joined along y = 5
+    neck = [
+        (0, 0),
+        (10, 0),
+        (10, 5),
+        (12, 5),
+        (12, 0),
+        (22, 0),
+        (22, 10),
+        (12, 10),
+        (12, 5),
+        (10, 5),
+        (10, 10),
+        (0, 10),
+    ]
+    ref = [[np.array(neck, dtype=float)]]
+    ring = np.array(neck, dtype=float)
+    ring[[2, 3, 8, 9]] += [(0.0, 0.002), (0.0, -0.002), (0.0, 0.002), (0.0, -0.002)]  # each pass now tilted
+    (crossing,) = self_crossings(loops_cut([[ring]]), points=True)
+    plane, area, length, x, y = crossing
+    assert plane == 0 and area == pytest.approx(100.0, abs=0.01)  # a lobe, the shorter way round
+    assert (x, y) == pytest.approx((11.0, 5.0), abs=1e-9)
+
+    z = np.array([1.0])
+    (note,) = self_crossing_warnings([crossing], z, 0.025, ref)
+    assert note.startswith(
+        "the DST mesh's contour runs along itself across a neck of the exact section at 1 plane(s)"
+    )
+    assert "crosses itself" not in note
+    for elsewhere in ((5.0, 0.001), (10.0, 0.0), (22.0, 9.99)):  # a side, corners: one pass of the section
+        (fault,) = self_crossing_warnings([(0, 100.0, 40.0, *elsewhere)], z, 0.025, ref)
+        assert fault.startswith("the DST mesh's contour crosses itself at 1 plane(s)")
+    # a neck wider than the budget: the ring's passes have no business crossing there
+    wide = [[np.array(neck, dtype=float) + np.where(np.arange(12)[:, None] >= 8, [0.0, 0.06], 0.0)]]
+    (fault,) = self_crossing_warnings([(0, 100.0, 40.0, 11.0, 5.0)], z, 0.025, wide)
+    assert "crosses itself" in fault
+
+
 def test_unknown_baseline_is_refused():
     from worker.dst.errors import InvalidParameters
 
