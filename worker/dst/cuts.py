@@ -207,15 +207,16 @@ def _crossing_point(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
 
 
 def loop_self_crossings(
-    loops: list[list[np.ndarray]], nearest: int | None = None
+    loops: list[list[np.ndarray]], nearest: int | None = None, tol: float = 0.0
 ) -> list[tuple[int, float, float]]:
     """``self_crossings`` of closed polylines per plane (first point not repeated), each loop's
     points in order: its pockets from prefix sums along the loop (the shoelace terms and the
     segment lengths), at once for every crossing (a walk per crossing took minutes on a reference
     tangled into thousands of crossings at one plane). ``nearest``: a bounded pair search (see
-    ``segment_pairs_near``)."""
+    ``segment_pairs_near``); ``tol``: only crossings whose segments' ends lie farther than that from
+    the other segment's line (see ``_crossing_segments``)."""
     cut = loops_cut(loops)
-    i, k = _crossing_segments(cut, nearest)
+    i, k = _crossing_segments(cut, nearest, tol)
     if not len(i):
         return []
     sizes = np.array([len(p) for ls in loops for p in ls], dtype=np.int64)
@@ -269,9 +270,14 @@ def loop_self_crossings(
     ]
 
 
-def _crossing_segments(cut: MeshCut, nearest: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+def _crossing_segments(
+    cut: MeshCut, nearest: int | None = None, tol: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
     """Pairs (i, k) of segments of one plane of ``cut`` with no end in common that cross (``nearest``:
-    see ``segment_pairs_near``)."""
+    see ``segment_pairs_near``). With ``tol``, each segment's ends must lie on either side of the
+    other's line and farther than ``tol`` from it: two segments running along each other within it
+    (a section doubled along a line where two faces touch: trj7_b1-ec-214 at z = 56.9, x = 155.6143,
+    1e-9 mm apart) or one ending on the other (a branch of such a section) do not count."""
     a, b = cut.seg[:, 0], cut.seg[:, 1]
     if len(a) < 4:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
@@ -279,9 +285,23 @@ def _crossing_segments(cut: MeshCut, nearest: int | None = None) -> tuple[np.nda
     node = cut.seg_node
     apart = ~(node[i][:, :, None] == node[k][:, None, :]).any(axis=(1, 2))  # no end in common
     i, k = i[apart], k[apart]
-    cross = (side(a[i], b[i], a[k]) * side(a[i], b[i], b[k]) < 0) & (
-        side(a[k], b[k], a[i]) * side(a[k], b[k], b[i]) < 0
-    )
+    if tol > 0.0:
+
+        def off(p: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:  # signed distance from line p-q
+            d = q - p
+            return (d[:, 0] * (r[:, 1] - p[:, 1]) - d[:, 1] * (r[:, 0] - p[:, 0])) / np.maximum(
+                np.linalg.norm(d, axis=1), 1e-300
+            )
+
+        def split(p, q, r, s) -> np.ndarray:
+            u, v = off(p, q, r), off(p, q, s)
+            return (u * v < 0) & (np.abs(u) > tol) & (np.abs(v) > tol)
+
+        cross = split(a[i], b[i], a[k], b[k]) & split(a[k], b[k], a[i], b[i])
+    else:
+        cross = (side(a[i], b[i], a[k]) * side(a[i], b[i], b[k]) < 0) & (
+            side(a[k], b[k], a[i]) * side(a[k], b[k], b[i]) < 0
+        )
     return i[cross], k[cross]
 
 

@@ -46,6 +46,13 @@ REFERENCE_GAP_PLANES = 20
 # Each mesh's planes of largest chord_dev (and of perimeter_err) whose reference is checked for
 # crossing itself (``reference_fault_warning``)
 REFERENCE_CHECK_PLANES = 5
+# ... crossing only where each segment's ends lie farther than this (mm) on either side of the other's
+# line: where two faces of the part touch along a line, the section runs along it twice, its passes
+# as far apart as rounding puts them (trj7_b1-ec-214 at z = 56.9: up to 1e-9 mm, read as crossings
+# round a 94 mm^2 "pocket", a whole lobe). A crossing of two of the thinned loop's segments (a tenth
+# of the budget long or more) is left out only where it passes within a nanometre of a segment's end
+# or the two run within a nanometre of each other
+REFERENCE_TOUCH_MM = 1e-6
 # ... among each piece's this many nearest pieces (bug27453_165-174 at z = 37.1: 3500 points of the
 # reference within 0.24 mm, 12 million pairs, 20 s for all of them)
 REFERENCE_PAIR_NEIGHBOURS = 16
@@ -323,6 +330,7 @@ def reference_fault_warning(
     pockets = loop_self_crossings(
         [[_thinned(p, step) for p in ls] if j in check else [] for j, ls in enumerate(loops)],
         nearest=REFERENCE_PAIR_NEIGHBOURS,
+        tol=REFERENCE_TOUCH_MM,
     )
     big = [(j, area) for j, area, _ in pockets if area > chord_error * chord_error]
     if not big:

@@ -853,6 +853,51 @@ def test_a_dst_contour_crossing_itself_across_a_neck_of_the_section_is_told_apar
     assert "crosses itself" in fault
 
 
+def test_a_reference_out_of_order_is_named_and_a_section_doubled_along_a_line_is_not():
+    """The report warns where its exact reference crosses itself round more than a chord-budget
+    square at a plane holding the meshes' largest deviations (points joined out of order). A
+    section doubled along a line, where two faces of the part touch (trj7_b1-ec-214 at z = 56.9:
+    two passes along x = 155.6143 mm, 1e-9 mm apart), is joined in order: its passes cross by no
+    more than a nanometre (``REFERENCE_TOUCH_MM``), and it is not named (it was, with a 94 mm^2
+    pocket: a whole lobe)."""
+    from types import SimpleNamespace
+
+    from worker.dst.cuts import loop_self_crossings
+    from worker.dst.report_warnings import reference_fault_warning
+
+    layers = [SimpleNamespace(chord_dev=0.03, perimeter_err=0.01)]
+    results = [SimpleNamespace(kind="dst", layers=layers)]
+    z = np.array([1.0])
+    # two squares joined by a neck along y = 5, its second pass tilted by 2e-9 mm: the two cross
+    doubled = np.array(
+        [
+            (0, 0),
+            (10, 0),
+            (10, 5),
+            (12, 5),
+            (12, 0),
+            (22, 0),
+            (22, 10),
+            (12, 10),
+            (12, 5 + 1e-9),
+            (10, 5 - 1e-9),
+            (10, 10),
+            (0, 10),
+        ],
+        float,
+    )
+    (crossing,) = loop_self_crossings([[doubled]])  # as read before: a "pocket" of a whole square
+    assert crossing[1] == pytest.approx(100.0, abs=1e-6)
+    assert reference_fault_warning([[doubled]], results, z, 0.025, 1e-3) is None
+    # a square's points with two of them swapped a third of the way round: a bow tie round most of it
+    square = np.array([(0, 0), (5, 0), (10, 0), (10, 5), (10, 10), (5, 10), (0, 10), (0, 5)], float)
+    square[[1, 4]] = square[[4, 1]]
+    warning = reference_fault_warning([[square]], results, z, 0.025, 1e-3)
+    assert warning is not None and warning.startswith(
+        "the report's exact reference is out of order at 1 plane(s)"
+    )
+
+
 def test_unknown_baseline_is_refused():
     from worker.dst.errors import InvalidParameters
 
