@@ -193,8 +193,8 @@ def self_crossings(cut: MeshCut, points: bool = False) -> list[tuple]:
 
 
 def _crossing_point(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
-    """Where segments ``a`` and ``b`` ((2, 2) each) that cross meet; the middle of their overlap
-    where they run along each other."""
+    """Where segments ``a`` and ``b`` ((2, 2) each) that cross meet; where they run (nearly) parallel,
+    the mean of their ends."""
     da, db = a[1] - a[0], b[1] - b[0]
     denom = float(da[0] * db[1] - da[1] * db[0])
     if abs(denom) > 1e-12 * float(np.linalg.norm(da) * np.linalg.norm(db)):

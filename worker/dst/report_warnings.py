@@ -1,8 +1,9 @@
 """The warnings of a deviation report that need more than a glance at its numbers: a DST ring vertex
 on the B-rep but off the exact reference (a gap of the reference, or a file exact only to its
-tolerances) or both off the B-rep across a gap of its faces, a DST contour crossing itself, a reference out of order where the meshes deviate most,
-a needle of the exact section or a loose edge where DST is over its budget, a mesh not watertight or off in volume,
-a measured mesh not in the part's coordinates.
+tolerances), or both off the B-rep across a gap of its faces; a DST contour crossing itself (or
+across a neck of the section); a reference out of order where the meshes deviate most; a needle of
+the exact section or a loose edge where DST is over its budget; a mesh not watertight or off in
+volume; a measured mesh not in the part's coordinates.
 """
 
 from __future__ import annotations
