@@ -285,29 +285,28 @@ def _crossing_segments(
     node = cut.seg_node
     apart = ~(node[i][:, :, None] == node[k][:, None, :]).any(axis=(1, 2))  # no end in common
     i, k = i[apart], k[apart]
-    if tol > 0.0:
 
-        def off(p: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:  # signed distance from line p-q
-            d = q - p
-            return (d[:, 0] * (r[:, 1] - p[:, 1]) - d[:, 1] * (r[:, 0] - p[:, 0])) / np.maximum(
-                np.linalg.norm(d, axis=1), 1e-300
-            )
+    def apart_by_line(p: np.ndarray, q: np.ndarray, r: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """r and t on either side of line p -> q (and farther than ``tol`` from it)."""
+        u, v = _turn(p, q, r), _turn(p, q, t)
+        out = np.sign(u) * np.sign(v) < 0
+        if tol > 0.0:
+            reach = tol * np.linalg.norm(q - p, axis=1)  # |turn| is the distance times |q - p|
+            out &= (np.abs(u) > reach) & (np.abs(v) > reach)
+        return out
 
-        def split(p, q, r, s) -> np.ndarray:
-            u, v = off(p, q, r), off(p, q, s)
-            return (u * v < 0) & (np.abs(u) > tol) & (np.abs(v) > tol)
-
-        cross = split(a[i], b[i], a[k], b[k]) & split(a[k], b[k], a[i], b[i])
-    else:
-        cross = (side(a[i], b[i], a[k]) * side(a[i], b[i], b[k]) < 0) & (
-            side(a[k], b[k], a[i]) * side(a[k], b[k], b[i]) < 0
-        )
+    cross = apart_by_line(a[i], b[i], a[k], b[k]) & apart_by_line(a[k], b[k], a[i], b[i])
     return i[cross], k[cross]
 
 
 def side(p: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
     """Per row, the side of line p -> q that point r lies on: +1 left, -1 right, 0 on it."""
-    return np.sign((q[:, 0] - p[:, 0]) * (r[:, 1] - p[:, 1]) - (q[:, 1] - p[:, 1]) * (r[:, 0] - p[:, 0]))
+    return np.sign(_turn(p, q, r))
+
+
+def _turn(p: np.ndarray, q: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Per row, the cross product (q - p) x (r - p): > 0 where r lies left of line p -> q."""
+    return (q[:, 0] - p[:, 0]) * (r[:, 1] - p[:, 1]) - (q[:, 1] - p[:, 1]) * (r[:, 0] - p[:, 0])
 
 
 def segment_pairs_near(

@@ -26,6 +26,7 @@ from OCP.TopAbs import TopAbs_EDGE, TopAbs_FACE
 from OCP.TopExp import TopExp, TopExp_Explorer
 from OCP.TopoDS import TopoDS, TopoDS_Edge, TopoDS_Face
 
+from worker.dst.chords import chord_position
 from worker.dst.cuts import cut_mesh, loop_needles, loop_self_crossings
 from worker.dst.deviation import SegmentSet
 from worker.dst.exact import FaceEval
@@ -105,7 +106,7 @@ def reference_gap_warnings(
         face_tol = _on_a_face(faces, p, tol)
         if face_tol is None:
             a, b = ref_set.seg[span[far]]
-            q = _nearest_on_segment(cut.vertices[far], a, b)
+            q = a + np.clip(chord_position(cut.vertices[far][None], a[None], b[None])[0], 0.0, 1.0) * (b - a)
             off_ref = _distance_to_faces(faces, (float(q[0]), float(q[1]), p[2]))
             if off_ref > REFERENCE_GAP_MM:
                 off_dst = _distance_to_faces(faces, p)
@@ -189,12 +190,6 @@ def _faces_with_boxes(part: LoadedPart) -> list[_FaceProbe]:
         box.Enlarge(1e-3)
         out.append(_FaceProbe(face, box))
     return out
-
-
-def _nearest_on_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    ab = b - a
-    t = float(np.clip(np.dot(p - a, ab) / max(float(np.dot(ab, ab)), 1e-300), 0.0, 1.0))
-    return a + t * ab
 
 
 def _distance_to_faces(faces: list[_FaceProbe], p: tuple[float, float, float]) -> float:

@@ -804,19 +804,10 @@ def test_a_dst_contour_crossing_itself_is_named_in_a_warning(hemisphere):
     assert f"at z = {mesh.planes.z[j]:.4f} mm" in warning
 
 
-def test_a_dst_contour_crossing_itself_across_a_neck_of_the_section_is_told_apart():
-    """Where the exact section pinches to a neck narrower than the chord budget (two lobes joined by
-    a stretch of zero width: trj7_b1-ec-214 turned (-99.8, 126.0, -162.8) at z = 101.7), the ring's
-    two passes along the neck cross by micrometres and the pocket the shorter way round is a whole
-    lobe: the report says the section pinches there, not that the build is at fault. A crossing
-    anywhere else (on one side of a lobe, or at a corner, where the section passes once) is the
-    build's fault, as before. The crossing points come from the cut: two passes of a neck drawn
-    0.004 mm apart at its ends cross at its middle."""
-    from worker.dst.cuts import loops_cut, self_crossings
-    from worker.dst.report_warnings import self_crossing_warnings
-
-    # lobes (0..10) x (0..10) and (12..22) x (0..10), counter-clockwise, joined along y = 5
-    neck = [
+# lobes (0..10) x (0..10) and (12..22) x (0..10), counter-clockwise, joined along y = 5 by a stretch
+# of zero width, run along twice
+_TWO_SQUARES_AND_A_NECK = np.array(
+    [
         (0, 0),
         (10, 0),
         (10, 5),
@@ -829,9 +820,25 @@ def test_a_dst_contour_crossing_itself_across_a_neck_of_the_section_is_told_apar
         (10, 5),
         (10, 10),
         (0, 10),
-    ]
-    ref = [[np.array(neck, dtype=float)]]
-    ring = np.array(neck, dtype=float)
+    ],
+    dtype=float,
+)
+
+
+def test_a_dst_contour_crossing_itself_across_a_neck_of_the_section_is_told_apart():
+    """Where the exact section pinches to a neck narrower than the chord budget (two lobes joined by
+    a stretch of zero width: trj7_b1-ec-214 turned (-99.8, 126.0, -162.8) at z = 101.7), the ring's
+    two passes along the neck cross by micrometres and the pocket the shorter way round is a whole
+    lobe: the report says the section pinches there, not that the build is at fault. A crossing
+    anywhere else (on one side of a lobe, or at a corner, where the section passes once) is the
+    build's fault, as before. The crossing points come from the cut: two passes of a neck drawn
+    0.004 mm apart at its ends cross at its middle."""
+    from worker.dst.cuts import loops_cut, self_crossings
+    from worker.dst.report_warnings import self_crossing_warnings
+
+    neck = _TWO_SQUARES_AND_A_NECK
+    ref = [[neck.copy()]]
+    ring = neck.copy()
     ring[[2, 3, 8, 9]] += [(0.0, 0.002), (0.0, -0.002), (0.0, 0.002), (0.0, -0.002)]  # each pass now tilted
     (crossing,) = self_crossings(loops_cut([[ring]]), points=True)
     plane, area, length, x, y = crossing
@@ -848,7 +855,7 @@ def test_a_dst_contour_crossing_itself_across_a_neck_of_the_section_is_told_apar
         (fault,) = self_crossing_warnings([(0, 100.0, 40.0, *elsewhere)], z, 0.025, ref)
         assert fault.startswith("the DST mesh's contour crosses itself at 1 plane(s)")
     # a neck wider than the budget: the ring's passes have no business crossing there
-    wide = [[np.array(neck, dtype=float) + np.where(np.arange(12)[:, None] >= 8, [0.0, 0.06], 0.0)]]
+    wide = [[neck + np.where(np.arange(12)[:, None] >= 8, [0.0, 0.06], 0.0)]]
     (fault,) = self_crossing_warnings([(0, 100.0, 40.0, 11.0, 5.0)], z, 0.025, wide)
     assert "crosses itself" in fault
 
@@ -868,24 +875,10 @@ def test_a_reference_out_of_order_is_named_and_a_section_doubled_along_a_line_is
     layers = [SimpleNamespace(chord_dev=0.03, perimeter_err=0.01)]
     results = [SimpleNamespace(kind="dst", layers=layers)]
     z = np.array([1.0])
-    # two squares joined by a neck along y = 5, its second pass tilted by 2e-9 mm: the two cross
-    doubled = np.array(
-        [
-            (0, 0),
-            (10, 0),
-            (10, 5),
-            (12, 5),
-            (12, 0),
-            (22, 0),
-            (22, 10),
-            (12, 10),
-            (12, 5 + 1e-9),
-            (10, 5 - 1e-9),
-            (10, 10),
-            (0, 10),
-        ],
-        float,
-    )
+    # the two squares' neck, its second pass tilted by 2e-9 mm: the two cross
+    doubled = _TWO_SQUARES_AND_A_NECK.copy()
+    doubled[8, 1] += 1e-9
+    doubled[9, 1] -= 1e-9
     (crossing,) = loop_self_crossings([[doubled]])  # as read before: a "pocket" of a whole square
     assert crossing[1] == pytest.approx(100.0, abs=1e-6)
     assert reference_fault_warning([[doubled]], results, z, 0.025, 1e-3) is None
