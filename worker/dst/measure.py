@@ -49,6 +49,7 @@ class MeshInput:
     triangles: np.ndarray
     seconds: float | None = None
     description: str = ""
+    warning: str | None = None  # what the report must tell about this mesh (a baseline made otherwise)
 
 
 @dataclass

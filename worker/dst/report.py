@@ -13,7 +13,7 @@ import os
 import tempfile
 import time
 from collections.abc import Callable, Generator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from OCP.Bnd import Bnd_Box
@@ -29,7 +29,7 @@ from OCP.TopoDS import TopoDS
 
 from worker.dst.baselines import BASELINE_PRESETS, DEFAULT_BASELINES, Preset, parse_baselines
 from worker.dst.deviation import DENSE_SPACING_MM
-from worker.dst.errors import DstError, ResourceLimitExceeded, TessellationError
+from worker.dst.errors import DstError, ResourceLimitExceeded, TessellationError, UnmeshedFaceError
 from worker.dst.forked import Task, TaskDied, TaskGroup
 from worker.dst.measure import (
     Measured,
@@ -67,7 +67,7 @@ from worker.dst.report_warnings import (
     self_crossing_warnings,
     unresolved_reference_warning,
 )
-from worker.dst.step_io import LoadedPart, occt_version, orient, read_step
+from worker.dst.step_io import LoadedPart, heal_wires, occt_version, orient, read_step
 from worker.dst.stl_io import binary_stl_corners, merge_equal_vertices
 
 Progress = Callable[[str, float], None]
@@ -107,6 +107,15 @@ BACKGROUND_NICE = 10
 
 
 # --- conventional baselines ------------------------------------------------------------------------
+class UnmeshedBaselineError(UnmeshedFaceError):
+    """BRepMesh left faces of the part without triangles at a baseline's preset; ``solids``: the
+    indices of the solids they belong to."""
+
+    def __init__(self, message: str, solids: tuple[int, ...]):
+        super().__init__(message)
+        self.solids = solids
+
+
 def conventional_mesh(
     part: LoadedPart, preset: Preset, *, parallel: bool = True
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -115,16 +124,20 @@ def conventional_mesh(
     oriented outward), degenerate triangles dropped. ``parallel``: faces on OCCT's thread pool, as
     slicers mesh them (not in a forked process: see ``forked``); the mesh is the same either way.
     (The writer copies the triangulation in C++; node by node through OCP took 5x as long: 0.2 s
-    for 53k triangles.)"""
+    for 53k triangles.) Raises UnmeshedBaselineError where BRepMesh leaves a face without triangles
+    (the writer would skip it: the mesh would have a hole)."""
     comp = part.compound
     BRepTools.Clean_s(comp)  # otherwise a finer triangulation already on the faces is reused
     BRepMesh_IncrementalMesh(comp, preset.linear, False, preset.angular, parallel)
     try:
-        exp = TopExp_Explorer(comp, TopAbs_FACE)
-        while exp.More():  # the writer would skip such a face, leaving a hole
-            if BRep_Tool.Triangulation_s(TopoDS.Face(exp.Current()), TopLoc_Location()) is None:
-                raise TessellationError("BRepMesh left a face without triangles")
-            exp.Next()
+        if unmeshed := _unmeshed_faces(part):
+            named = "; ".join(
+                f"solid {si + 1}: face(s) {', '.join(str(f + 1) for f in fs)}" for si, fs in unmeshed
+            )
+            raise UnmeshedBaselineError(
+                f"OCCT's mesher left {sum(len(fs) for _, fs in unmeshed)} face(s) without triangles ({named})",
+                tuple(si for si, _ in unmeshed),
+            )
         with tempfile.TemporaryDirectory(prefix="dst-baseline-") as tmp:
             path = os.path.join(tmp, "baseline.stl")
             writer = StlAPI_Writer()
@@ -139,6 +152,41 @@ def conventional_mesh(
     return v.astype(np.float64), t[~repeated_corner(t)]
 
 
+def _unmeshed_faces(part: LoadedPart) -> list[tuple[int, list[int]]]:
+    """(solid, its faces) of the faces that have no triangulation, numbered as the build numbers
+    them (from 0, in ``TopExp_Explorer`` order)."""
+    out = []
+    for si, solid in enumerate(part.solids):
+        bare, k = [], 0
+        exp = TopExp_Explorer(solid, TopAbs_FACE)
+        while exp.More():
+            if BRep_Tool.Triangulation_s(TopoDS.Face(exp.Current()), TopLoc_Location()) is None:
+                bare.append(k)
+            exp.Next()
+            k += 1
+        if bare:
+            out.append((si, bare))
+    return out
+
+
+def _repaired(part: LoadedPart, solids: Sequence[int], precision: float) -> LoadedPart | None:
+    """The part with ``solids`` repaired as the DST build repairs a solid OCCT cannot mesh
+    (``heal_wires`` to the build's deflection); None where the repair changes none of them."""
+    out, changed = list(part.solids), False
+    for si in solids:
+        if (healed := heal_wires(part.solids[si], precision)) is not None:
+            out[si], changed = healed[0], True
+    return replace(part, solids=out) if changed else None
+
+
+@dataclass
+class BaselineLeftOut:
+    """A baseline OCCT could not make (``_occt_side``), and why."""
+
+    name: str
+    reason: str
+
+
 @dataclass
 class OcctSide:
     """What the report needs from OCCT besides the exact sections and the baselines."""
@@ -148,15 +196,57 @@ class OcctSide:
 
 
 def _occt_side(
-    part: LoadedPart, baselines: Sequence[str], parallel: bool, exact: bool = True
-) -> Generator[MeshInput, None, OcctSide | None]:
+    part: LoadedPart,
+    baselines: Sequence[str],
+    parallel: bool,
+    exact: bool = True,
+    params: SliceParams | None = None,
+) -> Generator[MeshInput | BaselineLeftOut, None, OcctSide | None]:
     """The conventional baseline meshes, each yielded as soon as it is made, the coarsest (quickest)
     first: in a helper, the report measures them while OCCT makes the finer ones. Returns the part's
-    exact x/y extent and its exact volume (``exact``; else None)."""
+    exact x/y extent and its exact volume (``exact``; else None).
+
+    Where BRepMesh leaves a face without triangles at a preset (BRepMesh's failures depend on the
+    deflection, and on the thread pool: trj7_b1-ec-214, as read, has its face 354 unmeshed at the
+    paper's presets on one thread, and at the PrusaSlicer preset does not finish in minutes), the
+    part is repaired as the DST build with ``params`` repairs such a solid (to the build's
+    deflection): that baseline and the finer ones after it are meshes of the repaired part, and say
+    so (``MeshInput.warning``). If the repair changes nothing or does not help, the baseline is left
+    out (``BaselineLeftOut``): the report goes on with the other meshes."""
+    used, why = part, None  # why: where the file as read failed, once the repaired part is used
     for name in sorted(baselines, key=lambda n: -BASELINE_PRESETS[n].linear):
         preset = BASELINE_PRESETS[name]
         t = time.perf_counter()
-        v, tr = conventional_mesh(part, preset, parallel=parallel)
+        try:
+            v, tr = conventional_mesh(used, preset, parallel=parallel)
+        except UnmeshedBaselineError as exc:
+            fixed = None
+            if params is not None and used is part:
+                fixed = _repaired(part, exc.solids, build_deflection(bbox_diagonal(part)[0], params))
+            if fixed is None:
+                yield BaselineLeftOut(
+                    name,
+                    f"on the part repaired as the DST build repairs it, {exc}"
+                    if used is not part
+                    else f"on the file as read, {exc} (where a slicer importing the file with these settings "
+                    "gets a mesh with holes), and repairing it as the DST build repairs such a solid changed "
+                    "nothing",
+                )
+                continue
+            used = fixed
+            why = (
+                f"on the file as read, {exc} at {name}'s settings ({preset.linear} mm, {preset.angular} rad), "
+                "where a slicer importing the file gets a mesh with holes"
+            )
+            t = time.perf_counter()  # the repaired part's mesh
+            try:
+                v, tr = conventional_mesh(used, preset, parallel=parallel)
+            except UnmeshedBaselineError as again:
+                yield BaselineLeftOut(
+                    name,
+                    f"on the file as read, {exc}, and on the part repaired as the DST build repairs it, {again}",
+                )
+                continue
         yield MeshInput(
             name,
             "baseline",
@@ -164,7 +254,13 @@ def _occt_side(
             tr,
             time.perf_counter() - t,
             f"OCCT {occt_version()} BRepMesh, linear {preset.linear} mm, angular {preset.angular} rad: "
-            f"{preset.source}" + ("" if parallel else " (timed on one thread)") + _app_note(preset),
+            f"{preset.source}"
+            + ("" if parallel else " (timed on one thread)")
+            + _app_note(preset)
+            + (
+                "" if why is None else "; of the part repaired as the DST build repairs it (see the warnings)"
+            ),
+            why,
         )
     return _exact_extent(part) if exact else None
 
@@ -206,10 +302,15 @@ def _exact_extent(part: LoadedPart) -> OcctSide:
 
 
 def _start_occt_side(
-    tasks: TaskGroup, part: LoadedPart, baselines: Sequence[str], nice: int = 0, exact: bool = True
+    tasks: TaskGroup,
+    part: LoadedPart,
+    baselines: Sequence[str],
+    params: SliceParams,
+    nice: int = 0,
+    exact: bool = True,
 ) -> Task:
     """``_occt_side`` as a task of ``tasks`` (OCCT on one thread in a forked helper)."""
-    return tasks.submit(_occt_side, part, baselines, not tasks.forked, exact, nice=nice)
+    return tasks.submit(_occt_side, part, baselines, not tasks.forked, exact, params, nice=nice)
 
 
 @dataclass
@@ -310,7 +411,7 @@ def build_report(
             meshes,
             baselines,
             tasks,
-            _start_occt_side(tasks, part, baselines),
+            _start_occt_side(tasks, part, baselines, params),
             report,
         )
 
@@ -342,7 +443,7 @@ def slice_and_report(
         # Inline (nothing to overlap): after the build.
         side = reference = None
         if tasks.forked:
-            side = _start_occt_side(tasks, part, baselines, nice=BACKGROUND_NICE, exact=False)
+            side = _start_occt_side(tasks, part, baselines, params, nice=BACKGROUND_NICE, exact=False)
             if tasks.limit >= 2:
                 reference = tasks.submit(_exact_reference, part, params, None, False, nice=BACKGROUND_NICE)
         as_read = list(part.solids)
@@ -361,7 +462,7 @@ def slice_and_report(
         # do them last, starved by the measuring (at nice 0) it holds up
         extent = None
         if side is None:
-            side = _start_occt_side(tasks, part, baselines)
+            side = _start_occt_side(tasks, part, baselines, params)
         else:
             extent = _exact_extent(part)
         out = _build_report(
@@ -513,20 +614,26 @@ def _build_report(
             if share:
                 measure(share, True)
 
-    todo.extend(side.items_ready())  # the baselines OCCT has made already
+    left_out: list[BaselineLeftOut] = []
+
+    def made(items: list[MeshInput | BaselineLeftOut]) -> list[MeshInput]:
+        left_out.extend(m for m in items if isinstance(m, BaselineLeftOut))
+        return [m for m in items if isinstance(m, MeshInput)]
+
+    todo.extend(made(side.items_ready()))  # the baselines OCCT has made already
     add(todo)
     report("conventional meshes", 0.5)
     while True:
         # free cores first: that reads what OCCT has sent, so a baseline it made just before it
         # ended is among the work handed out with its core, not left to this process alone
         free = tasks.free()
-        if arrived := side.items_ready():  # the others as OCCT makes them
+        if arrived := made(side.items_ready()):  # the others as OCCT makes them
             todo.extend(arrived)
             add(arrived)
         hand_out(free)
         if pending:
             measure([pending.pop(0)], False)
-        elif side.done() or sum(m.kind == "baseline" for m in todo) == len(baselines):
+        elif side.done() or sum(m.kind == "baseline" for m in todo) + len(left_out) == len(baselines):
             break
         else:
             tasks.wait_any()  # a baseline
@@ -552,6 +659,17 @@ def _build_report(
     warnings.extend(part.warnings)
     if slicer_note := slicer_preset_warning(baselines):
         warnings.append(slicer_note)
+    warnings.extend(
+        f"baseline {m.name} is left out: {m.reason}" for m in sorted(left_out, key=lambda m: rank[m.name])
+    )
+    repaired_baselines: dict[str, list[str]] = {}  # why -> the baselines made of the repaired part
+    for m in todo:
+        if m.warning:
+            repaired_baselines.setdefault(m.warning, []).append(m.name)
+    warnings.extend(
+        f"baseline(s) {', '.join(names)} are meshes of the part repaired as the DST build repairs it: {why}"
+        for why, names in repaired_baselines.items()
+    )
     if dst is not None:
         warnings.extend(w for w in dst.warnings if w not in warnings)
     else:

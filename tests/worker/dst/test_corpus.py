@@ -1262,3 +1262,69 @@ def test_reference_repairs_a_solid_occt_cannot_mesh_before_meshing_it_finer(monk
     assert all(v == file_volume for _, v in tried[:3]) and repaired_volume != file_volume
     assert repair.startswith("face 354 could not be meshed") and "edges under 0.02 mm dropped" in repair
     assert not mesh.filled_faces
+
+
+@pytest.mark.slow
+def test_the_baselines_of_a_file_the_mesher_leaves_with_a_hole_are_of_its_repair():
+    """trj7_b1-ec-214 as read: OCCT's mesher, on one thread (as in the report's helper), leaves its
+    face 354 (11.8 mm^2) without triangles at the paper's presets (and at the PrusaSlicer preset runs
+    for minutes). ``dst report trj7.stp mesh.stl`` failed on that after minutes of exact sections.
+    The baselines are now meshes of the part repaired as the DST build repairs it (its face
+    boundaries' gaps closed within 0.02 mm): named as such in their warning, with the face the file
+    as read lost, and covering that face (points on it within the preset's deflection and the
+    repair's precision of the mesh, where the rest of the B-rep is farther off)."""
+    from OCP.BRep import BRep_Builder, BRep_Tool
+    from OCP.BRepBuilderAPI import BRepBuilderAPI_MakeVertex
+    from OCP.BRepClass import BRepClass_FaceClassifier
+    from OCP.BRepExtrema import BRepExtrema_DistShapeShape
+    from OCP.BRepTools import BRepTools
+    from OCP.gp import gp_Pnt, gp_Pnt2d
+    from OCP.TopAbs import TopAbs_FACE, TopAbs_IN
+    from OCP.TopExp import TopExp_Explorer
+    from OCP.TopoDS import TopoDS, TopoDS_Compound
+
+    from worker.dst.baselines import BASELINE_PRESETS
+    from worker.dst.errors import UnmeshedFaceError
+    from worker.dst.report import _occt_side, conventional_mesh
+    from worker.dst.step_io import read_step
+
+    path, params = _turned("freeform/trj7_b1-ec-214.stp", (0.0, 0.0, 0.0))
+    part = read_step(path)
+    with pytest.raises(UnmeshedFaceError, match=r"\(solid 1: face\(s\) 354\)"):
+        conventional_mesh(part, BASELINE_PRESETS["occt_fast"], parallel=False)
+
+    # points inside face 354 as read, and their distances to every other face
+    others, builder = TopoDS_Compound(), BRep_Builder()
+    builder.MakeCompound(others)
+    exp, faces = TopExp_Explorer(part.solids[0], TopAbs_FACE), []
+    while exp.More():
+        faces.append(TopoDS.Face(exp.Current()))
+        exp.Next()
+    for k, face in enumerate(faces):
+        if k != 353:
+            builder.Add(others, face)
+    face = faces[353]
+    surface = BRep_Tool.Surface_s(face)
+    u0, u1, v0, v1 = BRepTools.UVBounds_s(face)
+    on_face = []
+    for u in np.linspace(u0, u1, 9)[1:-1]:
+        for v in np.linspace(v0, v1, 9)[1:-1]:
+            if BRepClass_FaceClassifier(face, gp_Pnt2d(u, v), 1e-7).State() == TopAbs_IN:
+                on_face.append(surface.Value(u, v).Coord())
+    assert len(on_face) >= 10
+    rest = [
+        BRepExtrema_DistShapeShape(BRepBuilderAPI_MakeVertex(gp_Pnt(*p)).Vertex(), others).Value()
+        for p in on_face
+    ]
+    assert max(rest) > 0.3, max(rest)  # a hole there would leave points that far from the mesh
+
+    made = list(_occt_side(part, ["occt_fast", "occt_high_quality"], False, False, params))
+    assert [m.name for m in made] == ["occt_fast", "occt_high_quality"]
+    for m in made:
+        assert m.warning is not None and "face(s) 354) at occt_fast's settings" in m.warning, m.warning
+        corners = m.vertices[m.triangles]
+        for p in on_face:  # its distance to the triangles within 3 mm
+            near = corners[(np.linalg.norm(corners - p, axis=2) < 3.0).any(axis=1)]
+            closest = trimesh.triangles.closest_point(near, np.broadcast_to(p, (len(near), 3)))
+            dist = np.linalg.norm(closest - p, axis=1).min()
+            assert dist < BASELINE_PRESETS[m.name].linear + 0.02, (m.name, p, dist)
