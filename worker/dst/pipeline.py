@@ -16,14 +16,14 @@ from OCP.BRepBndLib import BRepBndLib
 from worker.dst import constants as C
 from worker.dst.errors import ResourceLimitExceeded, TessellationError, UnmeshedFaceError
 from worker.dst.lowest import snap_extremes
-from worker.dst.meshops import edge_defects, signed_volume, split_t_junctions
+from worker.dst.meshops import edge_defects, repeated_corner, signed_volume, split_t_junctions
 from worker.dst.params import SliceParams
 from worker.dst.planes import PlanePlan, plan_planes
 from worker.dst.ridges import prepare_extremes
 from worker.dst.sampling import RingSampler, SamplingStats, VertexPool, unresolved_summary
 from worker.dst.sections import cut_topology
 from worker.dst.step_io import LoadedPart, heal_wires, orient, read_step
-from worker.dst.stl_io import write_3mf, write_stl
+from worker.dst.stl_io import merge_equal_vertices, write_3mf, write_stl
 from worker.dst.tessellate import tessellate_solid
 from worker.dst.topomesh import TopoMesh, build_topomesh
 
@@ -53,10 +53,7 @@ class DstMesh:
     @property
     def vertices32(self) -> np.ndarray:
         """(V, 3) float32 as written to STL; ring vertices' z is exactly ``float32(plane)``."""
-        v = self.vertices.astype(np.float32)
-        ring = self.vertex_plane >= 0
-        v[ring, 2] = self.planes.z32[self.vertex_plane[ring]]
-        return v
+        return float32_vertices(self.vertices, self.vertex_plane, self.planes.z32)
 
     def write_stl(self, path: str | os.PathLike[str], *, ascii: bool = False) -> int:
         return write_stl(path, self.vertices32, self.triangles, ascii=ascii)
@@ -232,6 +229,23 @@ def slice_part(
             raise
         volume = check_mesh(vertices, triangles)
         stats["t_junctions"] = split
+    # the mesh as an STL reader reads it: vertices with equal float32 coordinates are one
+    stats["float32_merged_vertices"] = stats["float32_collapsed_triangles"] = 0
+    welded = weld_float32(vertices, triangles, vertex_plane, planes.z32)
+    if welded is not None:
+        w_vertices, w_triangles, w_plane, merged, collapsed = welded
+        try:
+            w_volume = check_mesh(w_vertices, w_triangles)
+        except TessellationError as exc:
+            warnings.append(
+                touching_contour_warning(w_triangles, w_plane, planes.z)
+                if edge_defects(w_triangles, len(w_vertices))[1]
+                else f"the mesh as an STL reader reads it (vertices with equal float32 coordinates merged) "
+                f"fails its check ({exc}); the mesh as built (and its 3MF, whose vertices are indexed) is closed"
+            )
+        else:
+            vertices, triangles, vertex_plane, volume = w_vertices, w_triangles, w_plane, w_volume
+            stats["float32_merged_vertices"], stats["float32_collapsed_triangles"] = merged, collapsed
     warnings.extend(simplification_warnings(params))
     if stats["tangent_segments"]:
         warnings.append(
@@ -266,7 +280,7 @@ def slice_part(
     stats["unresolved_planes"] = sorted({j for j, _ in unresolved})
     stats["triangles"] = len(triangles)
     stats["vertices"] = len(vertices)
-    stats["ring_vertices"] = int(ring.sum())
+    stats["ring_vertices"] = int((vertex_plane >= 0).sum())
     stats["mesh_volume_mm3"] = volume
     timings["total"] = time.perf_counter() - t0
     stats["timings_s"] = {k: round(v, 4) for k, v in timings.items()}
@@ -281,6 +295,63 @@ def slice_part(
         params=params,
         warnings=warnings,
         stats=stats,
+    )
+
+
+def float32_vertices(vertices: np.ndarray, vertex_plane: np.ndarray, z32: np.ndarray) -> np.ndarray:
+    """(V, 3) float32 as written to STL; ring vertices' z exactly their plane's ``z32``."""
+    v = vertices.astype(np.float32)
+    ring = vertex_plane >= 0
+    v[ring, 2] = z32[vertex_plane[ring]]
+    return v
+
+
+def weld_float32(
+    vertices: np.ndarray, triangles: np.ndarray, vertex_plane: np.ndarray, z32: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int] | None:
+    """The mesh as an STL reader reads it: vertices whose float32 coordinates are equal merged
+    into the first of them (in the mesh's order) and the triangles that then repeat a corner
+    dropped (in the file, facets of zero area). Exact section points micrometres apart along a
+    ring can round to one float32 point (r103ec: 25 vertices, 50 triangles; trj4_k1_top-pe-214:
+    171 and 128). Returns (vertices, triangles, vertex_plane, merged, dropped), or None where no
+    two vertices are equal in float32 (or a ring vertex equals another plane's or a free one)."""
+    _, group = merge_equal_vertices(float32_vertices(vertices, vertex_plane, z32))
+    n_groups = int(group.max()) + 1 if len(group) else 0
+    if n_groups == len(vertices):
+        return None
+    lo = np.full(n_groups, np.iinfo(np.int64).max)
+    hi = np.full(n_groups, np.iinfo(np.int64).min)
+    np.minimum.at(lo, group, vertex_plane)
+    np.maximum.at(hi, group, vertex_plane)
+    if (lo != hi).any():
+        return None
+    first = np.full(n_groups, len(vertices))
+    np.minimum.at(first, group, np.arange(len(vertices)))
+    kept = np.sort(first)
+    rank = np.empty(n_groups, dtype=np.int64)
+    rank[np.argsort(first)] = np.arange(n_groups)
+    t = rank[group][triangles]
+    collapsed = repeated_corner(t)
+    return vertices[kept], t[~collapsed], vertex_plane[kept], len(vertices) - n_groups, int(collapsed.sum())
+
+
+def touching_contour_warning(triangles: np.ndarray, vertex_plane: np.ndarray, planes_z: np.ndarray) -> str:
+    """The warning for a mesh that is closed as built but not once its equal float32 vertices are
+    merged (``weld_float32``): edges of four triangles where the section touches itself."""
+    a, b = triangles.ravel(), triangles[:, [1, 2, 0]].ravel()
+    n = len(vertex_plane)
+    keys, counts = np.unique(np.minimum(a, b) * n + np.maximum(a, b), return_counts=True)
+    doubled = keys[counts > 2]
+    ends = np.concatenate([doubled // n, doubled % n])
+    named = np.unique(vertex_plane[ends][vertex_plane[ends] >= 0])
+    shown = ", ".join(f"{planes_z[j]:.4f}" for j in named[:10]) + (", ..." if len(named) > 10 else "")
+    return (
+        f"{len(doubled)} edge(s) of the mesh as an STL reader reads it (vertices with equal float32 "
+        f"coordinates merged) are shared by four triangles, at {len(named)} plane(s) (z = {shown} mm): "
+        "there two stretches of the ring lie within the float32 rounding of each other (~1e-5 mm), as where "
+        "the section touches itself (two faces of the part touching along a line), and a slicer sees the "
+        "contour touch itself. The mesh as built (and its 3MF, whose vertices are indexed) keeps them apart "
+        "and is closed"
     )
 
 

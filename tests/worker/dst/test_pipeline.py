@@ -394,6 +394,69 @@ def test_stl_vertex_merge_joins_exactly_the_equal_float32_points():
     assert empty.shape == (0, 3) and none.shape == (0,)
 
 
+def _split_vertex(vertices: np.ndarray, faces: np.ndarray, b: int, offset: np.ndarray):
+    """A closed mesh with vertex ``b`` split in two ``offset`` apart: half its fan of triangles on a
+    new last vertex, the seam closed by two slivers. Closed and manifold as it is."""
+    fan = {
+        int(p): (i, int(q))
+        for i, f in enumerate(faces)
+        if b in f
+        for p, q in [np.roll(f, -list(f).index(b))[1:]]
+    }
+    ring, tri = [next(iter(fan))], []
+    while len(ring) <= len(fan):  # the neighbours in order round b, and their triangles
+        i, q = fan[ring[-1]]
+        tri.append(i)
+        ring.append(q)
+    n, m = len(vertices), len(fan) // 2
+    out = faces.copy()
+    for i in tri[m:]:
+        out[i][out[i] == b] = n
+    slivers = [[b, ring[m], n], [n, ring[0], b]]
+    return np.vstack([vertices, vertices[b] + offset]), np.vstack([out, slivers])
+
+
+def test_vertices_equal_in_float32_are_merged_as_an_stl_reader_merges_them():
+    """Exact section points micrometres apart along a ring can round to one float32 point, and the
+    STL a slicer reads then has zero-area facets (r103ec: 50 of them). The build's mesh is the one
+    read back: equal float32 vertices merged, the facets that collapse dropped. Here a sphere's
+    vertex split 1e-9 mm apart (closed either way) comes back as the sphere; two cubes touching
+    along an edge within 1e-9 mm are left apart, with the warning naming the plane."""
+    import trimesh
+
+    from worker.dst.pipeline import check_mesh, touching_contour_warning, weld_float32
+
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=10.0)
+    v0, f0 = np.asarray(sphere.vertices), np.asarray(sphere.faces)
+    b = int(np.argmax(v0[:, 0]))  # at x = 10: float32 steps of ~1e-6 mm
+    v, f = _split_vertex(v0, f0, b, np.array([1e-9, 0.0, 0.0]))
+    check_mesh(v, f)  # closed as it is
+    free = np.full(len(v), -1)
+    w_v, w_f, w_plane, merged, dropped = weld_float32(v, f, free, np.zeros(0, dtype=np.float32))
+    assert (merged, dropped) == (1, 2)
+    assert np.array_equal(w_v, v0) and np.array_equal(w_f, f0) and (w_plane == -1).all()
+    assert check_mesh(w_v, w_f) == pytest.approx(check_mesh(v0, f0))
+    assert weld_float32(v0, f0, free[:-1], np.zeros(0, dtype=np.float32)) is None
+    apart = v.copy()
+    apart[-1, 0] = np.nextafter(np.float32(v[b, 0]), np.float32(np.inf))  # one float32 step away
+    assert weld_float32(apart, f, free, np.zeros(0, dtype=np.float32)) is None
+
+    box = trimesh.creation.box(bounds=[[0, 0, 0], [1, 1, 1]])
+    bv, bf = np.asarray(box.vertices), np.asarray(box.faces)
+    v = np.vstack([bv, bv + [1 + 1e-9, 1 + 1e-9, 0]])
+    f = np.vstack([bf, bf + len(bv)])
+    check_mesh(v, f)  # two closed cubes, apart by 1e-9 mm along the edge x = y = 1
+    plane = np.where(v[:, 2] == 1.0, 0, -1)  # their tops on a plane at z = 1
+    w_v, w_f, w_plane, merged, dropped = weld_float32(v, f, plane, np.array([1.0], dtype=np.float32))
+    assert (merged, dropped) == (2, 0)
+    with pytest.raises(Exception, match="non-manifold"):
+        check_mesh(w_v, w_f)
+    note = touching_contour_warning(w_f, w_plane, np.array([1.0]))
+    assert note.startswith("1 edge(s) of the mesh as an STL reader reads it") and "z = 1.0000 mm" in note, (
+        note
+    )
+
+
 def test_jobs_beyond_the_triangle_limit_are_refused_before_sampling(make_step, monkeypatch):
     from worker.dst import constants
     from worker.dst.errors import ResourceLimitExceeded
