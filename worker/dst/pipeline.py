@@ -238,7 +238,7 @@ def slice_part(
             w_volume = check_mesh(w_vertices, w_triangles)
         except TessellationError as exc:
             warnings.append(
-                touching_contour_warning(w_triangles, w_plane, planes.z)
+                touching_contour_warning(w_triangles, w_plane, planes.z, collapsed)
                 if edge_defects(w_triangles, len(w_vertices))[1]
                 else f"the mesh as an STL reader reads it (vertices with equal float32 coordinates merged) "
                 f"fails its check ({exc}); the mesh as built (and its 3MF, whose vertices are indexed) is closed"
@@ -335,9 +335,12 @@ def weld_float32(
     return vertices[kept], t[~collapsed], vertex_plane[kept], len(vertices) - n_groups, int(collapsed.sum())
 
 
-def touching_contour_warning(triangles: np.ndarray, vertex_plane: np.ndarray, planes_z: np.ndarray) -> str:
-    """The warning for a mesh that is closed as built but not once its equal float32 vertices are
-    merged (``weld_float32``): edges of four triangles where the section touches itself."""
+def touching_contour_warning(
+    triangles: np.ndarray, vertex_plane: np.ndarray, planes_z: np.ndarray, collapsed: int
+) -> str:
+    """The warning for a mesh that is closed as built but would not be once its equal float32
+    vertices were merged (``weld_float32``'s ``triangles`` and ``vertex_plane``; ``collapsed``: the
+    facets of zero area it dropped): edges of four triangles where rings touch."""
     a, b = triangles.ravel(), triangles[:, [1, 2, 0]].ravel()
     n = len(vertex_plane)
     keys, counts = np.unique(np.minimum(a, b) * n + np.maximum(a, b), return_counts=True)
@@ -346,12 +349,11 @@ def touching_contour_warning(triangles: np.ndarray, vertex_plane: np.ndarray, pl
     named = np.unique(vertex_plane[ends][vertex_plane[ends] >= 0])
     shown = ", ".join(f"{planes_z[j]:.4f}" for j in named[:10]) + (", ..." if len(named) > 10 else "")
     return (
-        f"{len(doubled)} edge(s) of the mesh as an STL reader reads it (vertices with equal float32 "
-        f"coordinates merged) are shared by four triangles, at {len(named)} plane(s) (z = {shown} mm): "
-        "there two stretches of the ring lie within the float32 rounding of each other (~1e-5 mm), as where "
-        "the section touches itself (two faces of the part touching along a line), and a slicer sees the "
-        "contour touch itself. The mesh as built (and its 3MF, whose vertices are indexed) keeps them apart "
-        "and is closed"
+        f"at {len(named)} plane(s) (z = {shown} mm) ring vertices lie within the float32 rounding of each "
+        "other (~1e-5 mm), as where the section touches itself or two solids touch: an STL reader, which "
+        f"merges vertices with equal float32 coordinates, gets {len(doubled)} edge(s) of four triangles "
+        f"there (the contour touching itself) and {collapsed} facet(s) of zero area. The mesh is kept as "
+        "built, closed (its 3MF, whose vertices are indexed, keeps them apart)"
     )
 
 

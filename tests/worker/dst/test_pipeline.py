@@ -451,10 +451,9 @@ def test_vertices_equal_in_float32_are_merged_as_an_stl_reader_merges_them():
     assert (merged, dropped) == (2, 0)
     with pytest.raises(Exception, match="non-manifold"):
         check_mesh(w_v, w_f)
-    note = touching_contour_warning(w_f, w_plane, np.array([1.0]))
-    assert note.startswith("1 edge(s) of the mesh as an STL reader reads it") and "z = 1.0000 mm" in note, (
-        note
-    )
+    note = touching_contour_warning(w_f, w_plane, np.array([1.0]), dropped)
+    assert note.startswith("at 1 plane(s) (z = 1.0000 mm) ring vertices lie within"), note
+    assert "gets 1 edge(s) of four triangles there" in note and "0 facet(s) of zero area" in note, note
 
 
 def test_jobs_beyond_the_triangle_limit_are_refused_before_sampling(make_step, monkeypatch):
