@@ -313,7 +313,7 @@ def weld_float32(
     into the first of them (in the mesh's order) and the triangles that then repeat a corner
     dropped (in the file, facets of zero area). Exact section points micrometres apart along a
     ring can round to one float32 point (r103ec: 25 vertices, 50 triangles; trj4_k1_top-pe-214:
-    171 and 128). Returns (vertices, triangles, vertex_plane, merged, dropped), or None where no
+    64 and 128). Returns (vertices, triangles, vertex_plane, merged, dropped), or None where no
     two vertices are equal in float32 (or a ring vertex equals another plane's or a free one)."""
     _, group = merge_equal_vertices(float32_vertices(vertices, vertex_plane, z32))
     n_groups = int(group.max()) + 1 if len(group) else 0

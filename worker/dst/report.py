@@ -124,8 +124,9 @@ def conventional_mesh(
     oriented outward), degenerate triangles dropped. ``parallel``: faces on OCCT's thread pool, as
     slicers mesh them (not in a forked process: see ``forked``); the mesh is the same either way on
     the parts tested, though not BRepMesh's failures (trj7_b1-ec-214 as read: its face 354 left
-    bare at 0.085 mm on one thread at once, more than 10 minutes on the pool). (The writer copies the triangulation in C++; node by node through OCP took 5x as long: 0.2 s
-    for 53k triangles.) Raises UnmeshedBaselineError where BRepMesh leaves a face without triangles
+    bare at 0.085 mm on one thread at once, more than 10 minutes on the pool). (The writer copies
+    the triangulation in C++; node by node through OCP took 5x as long: 0.2 s for 53k triangles.)
+    Raises UnmeshedBaselineError where BRepMesh leaves a face without triangles
     (the writer would skip it: the mesh would have a hole)."""
     comp = part.compound
     BRepTools.Clean_s(comp)  # otherwise a finer triangulation already on the faces is reused
