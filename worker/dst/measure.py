@@ -49,7 +49,7 @@ class MeshInput:
     triangles: np.ndarray
     seconds: float | None = None
     description: str = ""
-    warning: str | None = None  # what the report must tell about this mesh (a baseline made otherwise)
+    repaired: str | None = None  # a baseline made of the repaired part: where the file as read failed
 
 
 @dataclass

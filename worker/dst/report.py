@@ -213,7 +213,7 @@ def _occt_side(
     paper's presets on one thread, and at the PrusaSlicer preset does not finish in minutes), the
     part is repaired as the DST build with ``params`` repairs such a solid (to the build's
     deflection): that baseline and the finer ones after it are meshes of the repaired part, and say
-    so (``MeshInput.warning``). If the repair changes nothing or does not help, the baseline is left
+    so (``MeshInput.repaired``). If the repair changes nothing or does not help, the baseline is left
     out (``BaselineLeftOut``): the report goes on with the other meshes."""
     used, why = part, None  # why: where the file as read failed, once the repaired part is used
     for name in sorted(baselines, key=lambda n: -BASELINE_PRESETS[n].linear):
@@ -666,8 +666,8 @@ def _build_report(
     )
     repaired_baselines: dict[str, list[str]] = {}  # why -> the baselines made of the repaired part
     for m in todo:
-        if m.warning:
-            repaired_baselines.setdefault(m.warning, []).append(m.name)
+        if m.repaired:
+            repaired_baselines.setdefault(m.repaired, []).append(m.name)
     warnings.extend(
         f"baseline(s) {', '.join(names)} are meshes of the part repaired as the DST build repairs it: {why}"
         for why, names in repaired_baselines.items()

@@ -1347,7 +1347,7 @@ def test_the_baselines_of_a_file_the_mesher_leaves_with_a_hole_are_of_its_repair
     made = list(_occt_side(part, ["occt_fast", "occt_high_quality"], False, False, params))
     assert [m.name for m in made] == ["occt_fast", "occt_high_quality"]
     for m in made:
-        assert m.warning is not None and "face(s) 354) at occt_fast's settings" in m.warning, m.warning
+        assert m.repaired is not None and "face(s) 354) at occt_fast's settings" in m.repaired, m.repaired
         corners = m.vertices[m.triangles]
         for p in on_face:  # its distance to the triangles within 3 mm
             near = corners[(np.linalg.norm(corners - p, axis=2) < 3.0).any(axis=1)]
