@@ -51,6 +51,17 @@ def repeated_corner(tris: np.ndarray) -> np.ndarray:
     return (tris[:, 0] == tris[:, 1]) | (tris[:, 1] == tris[:, 2]) | (tris[:, 2] == tris[:, 0])
 
 
+def drop_unreferenced(tris: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """The vertices the triangles use, in their order (indices into the old vertices), and the
+    triangles renumbered to them."""
+    used = np.zeros(n_vertices, dtype=bool)
+    used[tris.ravel()] = True
+    kept = np.flatnonzero(used)
+    new = np.full(n_vertices, -1, dtype=np.int64)
+    new[kept] = np.arange(len(kept))
+    return kept, new[tris]
+
+
 def signed_volume(xyz: np.ndarray, tris: np.ndarray) -> float:
     """Signed volume (mm^3) enclosed by a closed triangle mesh (divergence theorem); > 0 if outward."""
     a, b, c = xyz[tris[:, 0]], xyz[tris[:, 1]], xyz[tris[:, 2]]

@@ -16,7 +16,13 @@ from OCP.BRepBndLib import BRepBndLib
 from worker.dst import constants as C
 from worker.dst.errors import ResourceLimitExceeded, TessellationError, UnmeshedFaceError
 from worker.dst.lowest import snap_extremes
-from worker.dst.meshops import edge_defects, repeated_corner, signed_volume, split_t_junctions
+from worker.dst.meshops import (
+    drop_unreferenced,
+    edge_defects,
+    repeated_corner,
+    signed_volume,
+    split_t_junctions,
+)
 from worker.dst.params import SliceParams
 from worker.dst.planes import PlanePlan, plan_planes
 from worker.dst.ridges import prepare_extremes
@@ -246,6 +252,12 @@ def slice_part(
         else:
             vertices, triangles, vertex_plane, volume = w_vertices, w_triangles, w_plane, w_volume
             stats["float32_merged_vertices"], stats["float32_collapsed_triangles"] = merged, collapsed
+    # points the sampling pooled that no triangle uses (the soap box's 4: crossings solved to place
+    # a neighbouring one, and a helper's share's) are not part of the mesh; its 3MF, which is
+    # indexed, would carry them
+    kept, triangles = drop_unreferenced(triangles, len(vertices))
+    stats["unreferenced_vertices_dropped"] = len(vertices) - len(kept)
+    vertices, vertex_plane = vertices[kept], vertex_plane[kept]
     warnings.extend(simplification_warnings(params))
     if stats["tangent_segments"]:
         warnings.append(

@@ -234,6 +234,8 @@ def test_corpus_file(path: Path, tmp_path):
         raise
     assert_watertight(mesh)
     _assert_closed_as_an_stl_reader_reads_it(mesh)
+    # every vertex is a triangle's (its 3MF is indexed: a point no triangle uses would be in it)
+    assert np.bincount(mesh.triangles.ravel(), minlength=len(mesh.vertices)).all()
     assert_slab_property(mesh)
     # no segment left over budget by the refinement's last round (kept, with a warning, not fatal)
     assert mesh.stats["unresolved_segments"] == 0, mesh.warnings

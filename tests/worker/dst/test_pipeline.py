@@ -9,7 +9,7 @@ import pytest
 
 from tests.conftest import circle_sag, kinked_prism
 from tests.worker.dst.meshcheck import assert_slab_property, assert_watertight, distance_to_faces, ring_edges
-from worker.dst.params import SliceParams
+from worker.dst.params import ROTATION_FIELDS, SliceParams
 from worker.dst.pipeline import slice_step
 
 EXACT_TOL = 1e-5  # ring vertices within 10 nm of the closed-form section (issue 2)
@@ -366,6 +366,28 @@ def test_3mf_holds_the_same_float32_mesh_as_the_stl(hemisphere, tmp_path):
     ring = hemisphere.vertex_plane >= 0
     z32 = np.asarray(tm.vertices, dtype=np.float32)[ring, 2]
     assert np.array_equal(z32, hemisphere.planes.z32[hemisphere.vertex_plane[ring]])
+
+
+def test_points_the_sampling_pooled_and_no_triangle_uses_are_not_in_the_mesh_or_its_3mf(make_step, tmp_path):
+    """The torus turned (10, 20, 30) pools 4 exact points no triangle uses: they are dropped, so the
+    3MF (indexed, unlike the STL) holds only the mesh; the mesh's rings stay on their planes."""
+    import trimesh
+
+    turn = dict(zip(ROTATION_FIELDS, (10.0, 20.0, 30.0), strict=True))
+    mesh = slice_step(make_step("torus"), SliceParams(**turn))
+    assert mesh.stats["unreferenced_vertices_dropped"] > 0  # the case this test is about
+    used = np.zeros(len(mesh.vertices), dtype=bool)
+    used[mesh.triangles.ravel()] = True
+    assert used.all() and mesh.stats["vertices"] == len(mesh.vertices)
+    assert len(mesh.vertex_plane) == len(mesh.vertices)
+    assert_watertight(mesh)
+    vert, z = _ring_xyz(mesh)
+    assert np.array_equal(vert[:, 2], z)
+    path = tmp_path / "t.3mf"
+    mesh.write_3mf(path)
+    tm = trimesh.load(path, file_type="3mf", force="mesh", process=False)
+    assert len(tm.vertices) == len(mesh.vertices)
+    assert np.array_equal(np.asarray(tm.vertices, dtype=np.float32), mesh.vertices32)
 
 
 def test_stl_vertex_merge_joins_exactly_the_equal_float32_points():
