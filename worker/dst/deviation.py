@@ -368,7 +368,7 @@ class SegmentSet:
         ok = seg_idx >= 0
         nb = self.neighbours[np.where(ok, seg_idx, 0)]  # (n, m, 2)
         nb = np.where(ok[..., None], nb, -1)
-        return np.concatenate([seg_idx, nb.reshape(len(seg_idx), -1)], axis=1)
+        return np.concatenate([seg_idx, nb.reshape(len(seg_idx), 2 * seg_idx.shape[1])], axis=1)
 
 
 def _point_curve(p: np.ndarray, rows: np.ndarray) -> np.ndarray:

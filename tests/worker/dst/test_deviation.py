@@ -170,6 +170,12 @@ def test_empty_cut_and_missing_loop_are_reported():
     assert m.perimeter_err[0] == pytest.approx(0.5, abs=1e-3)
     assert math.isnan(m.vertex_dev[1]) and math.isnan(m.chord_dev[1]) and m.perimeter_err[1] == 1.0
     assert m.vertex_dev[2] == 0.0 and m.chord_dev[2] == 0.0 and m.perimeter_err[2] == 0.0
+    # a cut with no segments at all (a plane range above a user's mesh, measured in one piece:
+    # trj7_b1-ec-214 against a mesh placed elsewhere once failed there)
+    m = compare(cut_mesh(v, t, np.array([1.5, 2.5, 3.5])), ref, exact_per, 3)
+    assert np.isnan(m.vertex_dev[:2]).all() and np.isnan(m.chord_dev[:2]).all()
+    assert m.perimeter_err.tolist() == [1.0, 1.0, 0.0] and m.loops.tolist() == [0, 0, 0]
+    assert m.vertex_dev[2] == 0.0 and m.chord_dev[2] == 0.0
 
 
 def brute_force_distances(seg, plane, pts, pts_plane) -> np.ndarray:
