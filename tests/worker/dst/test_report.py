@@ -163,8 +163,14 @@ def test_report_files_draw_each_plot_once_and_the_page_embeds_the_svg(
     assert not (tmp_path / "x.json").exists()  # refused before anything was written
 
 
-def test_missing_layers_are_reported_not_crashed(hemisphere, tmp_path):
-    """A mesh of half the part's height: its upper layers are empty, reported as missing."""
+@pytest.mark.parametrize("min_chunk", [None, 1], ids=["whole", "in-pieces"])
+def test_missing_layers_are_reported_not_crashed(hemisphere, tmp_path, monkeypatch, min_chunk):
+    """A mesh of half the part's height: its upper layers are empty, reported as missing. Measured
+    in plane ranges too (``min_chunk`` 1), where the ranges above it have no cut at all."""
+    from worker.dst import report as report_mod
+
+    if min_chunk is not None:
+        monkeypatch.setattr(report_mod, "MIN_MEASURE_CHUNK", min_chunk)
     path, mesh, _, _ = hemisphere
     box = trimesh.creation.box(extents=[2 * R, 2 * R, R / 2])
     box.apply_translation([0, 0, R / 4])
