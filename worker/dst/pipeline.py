@@ -12,6 +12,8 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from OCP.Bnd import Bnd_Box
 from OCP.BRepBndLib import BRepBndLib
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from worker.dst import constants as C
 from worker.dst.errors import ResourceLimitExceeded, TessellationError, UnmeshedFaceError
@@ -34,6 +36,11 @@ from worker.dst.tessellate import tessellate_solid
 from worker.dst.topomesh import TopoMesh, build_topomesh
 
 Progress = Callable[[str, float], None]
+
+# ``unfold_float32``: a fold of a ring merged only within this many float32 steps of its
+# coordinates (bug27693_cornetta's: ~3), in at most this many rounds of merges
+FOLD_ULPS = 8
+FOLD_ROUNDS = 8
 
 
 @dataclass
@@ -237,18 +244,34 @@ def slice_part(
         stats["t_junctions"] = split
     # the mesh as an STL reader reads it: vertices with equal float32 coordinates are one
     stats["float32_merged_vertices"] = stats["float32_collapsed_triangles"] = 0
+    stats["float32_fold_merges"], stats["float32_fold_move_mm"] = 0, 0.0
     welded = weld_float32(vertices, triangles, vertex_plane, planes.z32)
     if welded is not None:
         w_vertices, w_triangles, w_plane, merged, collapsed = welded
         try:
             w_volume = check_mesh(w_vertices, w_triangles)
         except TessellationError as exc:
-            warnings.append(
-                touching_contour_warning(w_triangles, w_plane, planes.z, collapsed)
-                if edge_defects(w_triangles, len(w_vertices))[1]
-                else f"the mesh as an STL reader reads it (vertices with equal float32 coordinates merged) "
-                f"fails its check ({exc}); the mesh as built (and its 3MF, whose vertices are indexed) is closed"
-            )
+            # a ring folding back on itself within the float32 rounding: the fold merged away
+            unfolded = unfold_float32(vertices, triangles, vertex_plane, planes.z32)
+            u_volume = None
+            if unfolded is not None:
+                try:
+                    u_volume = check_mesh(unfolded[0][0], unfolded[0][1])
+                except TessellationError:
+                    u_volume = None
+            if u_volume is None:
+                warnings.append(
+                    touching_contour_warning(w_triangles, w_plane, planes.z, collapsed)
+                    if edge_defects(w_triangles, len(w_vertices))[1]
+                    else f"the mesh as an STL reader reads it (vertices with equal float32 coordinates merged) "
+                    f"fails its check ({exc}); the mesh as built (and its 3MF, whose vertices are indexed) is "
+                    "closed"
+                )
+            else:
+                (vertices, triangles, vertex_plane, merged, collapsed), folds, moved = unfolded
+                volume = u_volume
+                stats["float32_merged_vertices"], stats["float32_collapsed_triangles"] = merged, collapsed
+                stats["float32_fold_merges"], stats["float32_fold_move_mm"] = folds, moved
         else:
             vertices, triangles, vertex_plane, volume = w_vertices, w_triangles, w_plane, w_volume
             stats["float32_merged_vertices"], stats["float32_collapsed_triangles"] = merged, collapsed
@@ -329,14 +352,24 @@ def weld_float32(
     two vertices are equal in float32 (or a ring vertex equals another plane's or a free one)."""
     _, group = merge_equal_vertices(float32_vertices(vertices, vertex_plane, z32))
     n_groups = int(group.max()) + 1 if len(group) else 0
-    if n_groups == len(vertices):
+    if n_groups == len(vertices) or not _one_plane_each(group, n_groups, vertex_plane):
         return None
+    return _merged(vertices, triangles, vertex_plane, group, n_groups)
+
+
+def _one_plane_each(group: np.ndarray, n_groups: int, vertex_plane: np.ndarray) -> bool:
+    """Whether every group's vertices are ring vertices of one plane, or all free."""
     lo = np.full(n_groups, np.iinfo(np.int64).max)
     hi = np.full(n_groups, np.iinfo(np.int64).min)
     np.minimum.at(lo, group, vertex_plane)
     np.maximum.at(hi, group, vertex_plane)
-    if (lo != hi).any():
-        return None
+    return bool((lo == hi).all())
+
+
+def _merged(
+    vertices: np.ndarray, triangles: np.ndarray, vertex_plane: np.ndarray, group: np.ndarray, n_groups: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int]:
+    """Each group's vertices merged into its first, the triangles that then repeat a corner dropped."""
     first = np.full(n_groups, len(vertices))
     np.minimum.at(first, group, np.arange(len(vertices)))
     kept = np.sort(first)
@@ -345,6 +378,71 @@ def weld_float32(
     t = rank[group][triangles]
     collapsed = repeated_corner(t)
     return vertices[kept], t[~collapsed], vertex_plane[kept], len(vertices) - n_groups, int(collapsed.sum())
+
+
+def unfold_float32(
+    vertices: np.ndarray, triangles: np.ndarray, vertex_plane: np.ndarray, z32: np.ndarray
+) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray, int, int], int, float] | None:
+    """``weld_float32`` where its merge leaves edges of more than two triangles because a ring folds
+    back on itself within the float32 rounding: bug27693_cornetta at z = 42.1 runs into a corner,
+    turns back 2.6 um and out again (60 exact points within 25 um), so the STL's ring goes through
+    float32 points A B C B A B C. The float32 points such an edge joins, ring points of one plane
+    at most ``FOLD_ULPS`` float32 steps apart, are merged too (round by round, until no edge of
+    more than two triangles is left): the ring passes there once. None where such edges are left
+    and none is that short and along one plane (rings of two solids, or two stretches of a ring,
+    touching over a length), or where a merge would move a vertex farther than ``FOLD_ULPS``
+    float32 steps. Returns the welded mesh (as ``weld_float32``), the number of merges beyond
+    equal float32 points and the largest distance (mm) a vertex moved."""
+    v32 = float32_vertices(vertices, vertex_plane, z32)
+    _, group = merge_equal_vertices(v32)
+    n_groups = int(group.max()) + 1 if len(group) else 0
+    if not _one_plane_each(group, n_groups, vertex_plane):
+        return None
+    plane_of = np.full(n_groups, -1, dtype=np.int64)
+    plane_of[group] = vertex_plane
+    reach = FOLD_ULPS * np.spacing(np.abs(v32).max(axis=1)).astype(np.float64)  # per vertex
+    point = np.zeros((n_groups, 3))
+    point[group] = v32
+    step = np.zeros(n_groups)
+    step[group] = reach
+    joins = np.zeros((0, 2), dtype=np.int64)
+    comp = np.arange(n_groups)
+    for _ in range(FOLD_ROUNDS):
+        g = comp[group]
+        t = g[triangles]
+        t = t[~repeated_corner(t)]
+        a, b = t.ravel(), t[:, [1, 2, 0]].ravel()
+        lo, hi = np.minimum(a, b), np.maximum(a, b)
+        keys, counts = np.unique(lo * n_groups + hi, return_counts=True)
+        doubled = keys[counts > 2]
+        if not len(doubled):
+            break
+        ga, gb = doubled // n_groups, doubled % n_groups
+        # a fold's own edges: ring points of one plane a few float32 steps apart (the edges from its
+        # points to the next plane's or a free vertex, or across a cap, are doubled too: they go
+        # once the fold does)
+        along = (plane_of[ga] >= 0) & (plane_of[ga] == plane_of[gb])
+        along &= np.abs(point[ga] - point[gb]).max(axis=1) <= step[ga]
+        if not along.any():
+            return None
+        joins = np.concatenate([joins, np.column_stack([ga[along], gb[along]])])
+        graph = coo_matrix((np.ones(len(joins)), (joins[:, 0], joins[:, 1])), shape=(n_groups, n_groups))
+        label = connected_components(graph, directed=False)[1]
+        rep = np.full(n_groups, n_groups)
+        np.minimum.at(rep, label, np.arange(n_groups))
+        comp = rep[label]  # each group's component, named by its first group
+    else:
+        return None
+    g = comp[group]
+    _, g = np.unique(g, return_inverse=True)
+    n_comp = int(g.max()) + 1
+    first = np.full(n_comp, len(vertices))
+    np.minimum.at(first, g, np.arange(len(vertices)))
+    move = np.linalg.norm(vertices - vertices[first[g]], axis=1)
+    if (move > reach).any():
+        return None
+    extra = n_groups - n_comp
+    return _merged(vertices, triangles, vertex_plane, g, n_comp), extra, float(move.max())
 
 
 def touching_contour_warning(

@@ -123,8 +123,9 @@ def conventional_mesh(
     and read back (float32 vertices, equal ones merged as an STL reader merges them, triangles
     oriented outward), degenerate triangles dropped. ``parallel``: faces on OCCT's thread pool, as
     slicers mesh them (not in a forked process: see ``forked``); the mesh is the same either way on
-    the parts tested, though not BRepMesh's failures (trj7_b1-ec-214 as read: its face 354 left
-    bare at 0.085 mm on one thread at once, more than 10 minutes on the pool). (The writer copies
+    the parts tested (trj7_b1-ec-214 as read: its face 354 left bare at 0.085 mm in under a second
+    either way; one run on the pool was seen going on for more than 10 minutes, not reproduced in
+    four tries since). (The writer copies
     the triangulation in C++; node by node through OCP took 5x as long: 0.2 s for 53k triangles.)
     Raises UnmeshedBaselineError where BRepMesh leaves a face without triangles
     (the writer would skip it: the mesh would have a hole)."""
@@ -209,8 +210,8 @@ def _occt_side(
     exact x/y extent and its exact volume (``exact``; else None).
 
     Where BRepMesh leaves a face without triangles at a preset (BRepMesh's failures depend on the
-    deflection, and on the thread pool: trj7_b1-ec-214, as read, has its face 354 unmeshed at the
-    paper's presets on one thread, and at the PrusaSlicer preset does not finish in minutes), the
+    deflection: trj7_b1-ec-214, as read, has its face 354 unmeshed at the paper's presets, and at
+    the PrusaSlicer preset on one thread does not finish in minutes), the
     part is repaired as the DST build with ``params`` repairs such a solid (to the build's
     deflection): that baseline and the finer ones after it are meshes of the repaired part, and say
     so (``MeshInput.repaired``). If the repair changes nothing or does not help, the baseline is left

@@ -446,7 +446,7 @@ def test_vertices_equal_in_float32_are_merged_as_an_stl_reader_merges_them():
     along an edge within 1e-9 mm are left apart, with the warning naming the plane."""
     import trimesh
 
-    from worker.dst.pipeline import check_mesh, touching_contour_warning, weld_float32
+    from worker.dst.pipeline import check_mesh, touching_contour_warning, unfold_float32, weld_float32
 
     sphere = trimesh.creation.icosphere(subdivisions=2, radius=10.0)
     v0, f0 = np.asarray(sphere.vertices), np.asarray(sphere.faces)
@@ -476,6 +476,50 @@ def test_vertices_equal_in_float32_are_merged_as_an_stl_reader_merges_them():
     note = touching_contour_warning(w_f, w_plane, np.array([1.0]), dropped)
     assert note.startswith("at 1 plane(s) (z = 1.0000 mm) ring vertices lie within"), note
     assert "gets 1 edge(s) of four triangles there" in note and "0 facet(s) of zero area" in note, note
+    assert unfold_float32(v, f, plane, np.array([1.0], dtype=np.float32)) is None  # two solids touching
+
+
+def _prism(ring: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A closed prism over the counter-clockwise polygon ``ring`` (k, 2) from z = 0 to z = 1, its
+    rings on planes 0 and 1, its caps fans from the ring's first point: (vertices, triangles,
+    vertex_plane)."""
+    k = len(ring)
+    v = np.vstack([np.column_stack([ring, np.zeros(k)]), np.column_stack([ring, np.ones(k)])])
+    i = np.arange(k)
+    j = (i + 1) % k
+    walls = np.vstack([np.column_stack([i, j, j + k]), np.column_stack([i, j + k, i + k])])
+    fan = np.arange(1, k - 1)
+    top = np.column_stack([np.full(k - 2, k), fan + k, fan + k + 1])
+    bottom = np.column_stack([np.zeros(k - 2, dtype=np.int64), fan + 1, fan])
+    return v, np.vstack([walls, top, bottom]), np.repeat([0, 1], k)
+
+
+def test_a_ring_folding_back_within_the_float32_rounding_is_merged_into_one_pass():
+    """bug27693_cornetta's ring at z = 42.1 runs into a corner, turns back 2.6 um and out again:
+    exact points that round to float32 points A B C B A B C, so the STL's plain merge has edges of
+    four triangles. ``unfold_float32`` merges the fold's float32 points (within a few float32
+    steps): the ring passes there once, closed and manifold, as the prism without the fold."""
+    from worker.dst.pipeline import check_mesh, unfold_float32, weld_float32
+
+    u = 2.0**-20  # one float32 step at y = 10
+    fold = [10.0, 10.0 + u, 10.0 + 2 * u, 10.0 + u + 1e-9, 10.0 + 1e-9, 10.0 + u + 2e-9, 10.0 + 2 * u + 1e-9]
+    square = [(0.0, 0.0), (20.0, 0.0), *[(20.0, y) for y in fold], (20.0, 20.0), (0.0, 20.0)]
+    v, f, plane = _prism(np.array(square))
+    z32 = np.array([0.0, 1.0], dtype=np.float32)
+    plain = check_mesh(*_prism(np.array([square[i] for i in (0, 1, 9, 10)]))[:2])  # 400 mm^3
+    assert check_mesh(v, f) == pytest.approx(plain)  # closed as built
+    w_v, w_f, *_ = weld_float32(v, f, plane, z32)
+    with pytest.raises(Exception, match="non-manifold"):
+        check_mesh(w_v, w_f)
+    (u_v, u_f, u_plane, merged, dropped), folds, moved = unfold_float32(v, f, plane, z32)
+    assert folds == 4  # A, B and C one point, on each of the two rings
+    assert merged == 12 and moved == pytest.approx(2 * u, rel=1e-3)
+    assert check_mesh(u_v, u_f) == pytest.approx(plain)
+    assert len(u_v) == 2 * (len(square) - 6) and np.array_equal(np.bincount(u_plane), [5, 5])
+    # a fold wider than FOLD_ULPS float32 steps is not a rounding: left as it is
+    wide = [(20.0, 10.0 + k * 12 * u) for k in (0, 1, 2, 1.001, 0.001, 1.002, 2.001)]
+    v, f, plane = _prism(np.array([*square[:2], *wide, *square[-2:]]))
+    assert unfold_float32(v, f, plane, z32) is None
 
 
 def test_jobs_beyond_the_triangle_limit_are_refused_before_sampling(make_step, monkeypatch):
