@@ -253,12 +253,7 @@ def slice_part(
         except TessellationError as exc:
             # a ring folding back on itself within the float32 rounding: the fold merged away
             unfolded = unfold_float32(vertices, triangles, vertex_plane, planes.z32)
-            u_volume = None
-            if unfolded is not None:
-                try:
-                    u_volume = check_mesh(unfolded[0][0], unfolded[0][1])
-                except TessellationError:
-                    u_volume = None
+            u_volume = None if unfolded is None else _closed_volume(*unfolded[0][:2])
             if u_volume is None:
                 warnings.append(
                     touching_contour_warning(w_triangles, w_plane, planes.z, collapsed)
@@ -543,6 +538,14 @@ def bbox_diagonal(part: LoadedPart) -> tuple[float, float]:
     BRepBndLib.Add_s(part.compound, box, False)
     lo, hi = np.array(box.CornerMin().Coord()), np.array(box.CornerMax().Coord())
     return float(np.linalg.norm(hi - lo)), float(hi[2] - lo[2])
+
+
+def _closed_volume(v: np.ndarray, t: np.ndarray) -> float | None:
+    """``check_mesh``'s volume, or None where the mesh fails it."""
+    try:
+        return check_mesh(v, t)
+    except TessellationError:
+        return None
 
 
 def check_mesh(v: np.ndarray, t: np.ndarray) -> float:
