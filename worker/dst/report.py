@@ -125,10 +125,9 @@ def conventional_mesh(
     slicers mesh them (not in a forked process: see ``forked``); the mesh is the same either way on
     the parts tested (trj7_b1-ec-214 as read: its face 354 left bare at 0.085 mm in under a second
     either way; one run on the pool was seen going on for more than 10 minutes, not reproduced in
-    four tries since). (The writer copies
-    the triangulation in C++; node by node through OCP took 5x as long: 0.2 s for 53k triangles.)
-    Raises UnmeshedBaselineError where BRepMesh leaves a face without triangles
-    (the writer would skip it: the mesh would have a hole)."""
+    four tries since). (The writer copies the triangulation in C++; node by node through OCP took
+    5x as long: 0.2 s for 53k triangles.) Raises UnmeshedBaselineError where BRepMesh leaves a face
+    without triangles (the writer would skip it: the mesh would have a hole)."""
     comp = part.compound
     BRepTools.Clean_s(comp)  # otherwise a finer triangulation already on the faces is reused
     BRepMesh_IncrementalMesh(comp, preset.linear, False, preset.angular, parallel)
@@ -211,11 +210,11 @@ def _occt_side(
 
     Where BRepMesh leaves a face without triangles at a preset (BRepMesh's failures depend on the
     deflection: trj7_b1-ec-214, as read, has its face 354 unmeshed at the paper's presets, and at
-    the PrusaSlicer preset on one thread does not finish in minutes), the
-    part is repaired as the DST build with ``params`` repairs such a solid (to the build's
-    deflection): that baseline and the finer ones after it are meshes of the repaired part, and say
-    so (``MeshInput.repaired``). If the repair changes nothing or does not help, the baseline is left
-    out (``BaselineLeftOut``): the report goes on with the other meshes."""
+    the PrusaSlicer preset on one thread does not finish in minutes), the part is repaired as the
+    DST build with ``params`` repairs such a solid (to the build's deflection): that baseline and the
+    finer ones after it are meshes of the repaired part, and say so (``MeshInput.repaired``). If the
+    repair changes nothing or does not help, the baseline is left out (``BaselineLeftOut``): the
+    report goes on with the other meshes."""
     used, why = part, None  # why: where the file as read failed, once the repaired part is used
     for name in sorted(baselines, key=lambda n: -BASELINE_PRESETS[n].linear):
         preset = BASELINE_PRESETS[name]
