@@ -51,6 +51,14 @@ def repeated_corner(tris: np.ndarray) -> np.ndarray:
     return (tris[:, 0] == tris[:, 1]) | (tris[:, 1] == tris[:, 2]) | (tris[:, 2] == tris[:, 0])
 
 
+def crowded_edges(tris: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """The edges (ends a < b) that more than two triangles hold, whatever their direction."""
+    a, b = tris.ravel(), tris[:, [1, 2, 0]].ravel()
+    keys, counts = np.unique(np.minimum(a, b) * n_vertices + np.maximum(a, b), return_counts=True)
+    crowded = keys[counts > 2]
+    return crowded // n_vertices, crowded % n_vertices
+
+
 def drop_unreferenced(tris: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
     """The vertices the triangles use, in their order (indices into the old vertices), and the
     triangles renumbered to them."""

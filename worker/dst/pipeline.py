@@ -19,6 +19,7 @@ from worker.dst import constants as C
 from worker.dst.errors import ResourceLimitExceeded, TessellationError, UnmeshedFaceError
 from worker.dst.lowest import snap_extremes
 from worker.dst.meshops import (
+    crowded_edges,
     drop_unreferenced,
     edge_defects,
     repeated_corner,
@@ -345,20 +346,25 @@ def weld_float32(
     ring can round to one float32 point (r103ec: 25 vertices, 50 triangles; trj4_k1_top-pe-214:
     64 and 128). Returns (vertices, triangles, vertex_plane, merged, dropped), or None where no
     two vertices are equal in float32 (or a ring vertex equals another plane's or a free one)."""
-    _, group = merge_equal_vertices(float32_vertices(vertices, vertex_plane, z32))
-    n_groups = int(group.max()) + 1 if len(group) else 0
-    if n_groups == len(vertices) or not _one_plane_each(group, n_groups, vertex_plane):
+    _, group, n_groups = _float32_groups(vertices, vertex_plane, z32)
+    if n_groups == len(vertices) or group is None:
         return None
     return _merged(vertices, triangles, vertex_plane, group, n_groups)
 
 
-def _one_plane_each(group: np.ndarray, n_groups: int, vertex_plane: np.ndarray) -> bool:
-    """Whether every group's vertices are ring vertices of one plane, or all free."""
+def _float32_groups(
+    vertices: np.ndarray, vertex_plane: np.ndarray, z32: np.ndarray
+) -> tuple[np.ndarray, np.ndarray | None, int]:
+    """The vertices as float32 (as written), each one's group of equal float32 points (None where
+    a group holds ring vertices of two planes, or a ring vertex and a free one) and the group count."""
+    v32 = float32_vertices(vertices, vertex_plane, z32)
+    _, group = merge_equal_vertices(v32)
+    n_groups = int(group.max()) + 1 if len(group) else 0
     lo = np.full(n_groups, np.iinfo(np.int64).max)
     hi = np.full(n_groups, np.iinfo(np.int64).min)
     np.minimum.at(lo, group, vertex_plane)
     np.maximum.at(hi, group, vertex_plane)
-    return bool((lo == hi).all())
+    return v32, group if (lo == hi).all() else None, n_groups
 
 
 def _merged(
@@ -388,10 +394,8 @@ def unfold_float32(
     touching over a length), or where a merge would move a vertex farther than ``FOLD_ULPS``
     float32 steps. Returns the welded mesh (as ``weld_float32``), the number of merges beyond
     equal float32 points and the largest distance (mm) a vertex moved."""
-    v32 = float32_vertices(vertices, vertex_plane, z32)
-    _, group = merge_equal_vertices(v32)
-    n_groups = int(group.max()) + 1 if len(group) else 0
-    if not _one_plane_each(group, n_groups, vertex_plane):
+    v32, group, n_groups = _float32_groups(vertices, vertex_plane, z32)
+    if group is None:
         return None
     plane_of = np.full(n_groups, -1, dtype=np.int64)
     plane_of[group] = vertex_plane
@@ -405,14 +409,9 @@ def unfold_float32(
     for _ in range(FOLD_ROUNDS):
         g = comp[group]
         t = g[triangles]
-        t = t[~repeated_corner(t)]
-        a, b = t.ravel(), t[:, [1, 2, 0]].ravel()
-        lo, hi = np.minimum(a, b), np.maximum(a, b)
-        keys, counts = np.unique(lo * n_groups + hi, return_counts=True)
-        doubled = keys[counts > 2]
-        if not len(doubled):
+        ga, gb = crowded_edges(t[~repeated_corner(t)], n_groups)
+        if not len(ga):
             break
-        ga, gb = doubled // n_groups, doubled % n_groups
         # a fold's own edges: ring points of one plane a few float32 steps apart (the edges from its
         # points to the next plane's or a free vertex, or across a cap, are doubled too: they go
         # once the fold does)
@@ -446,17 +445,14 @@ def touching_contour_warning(
     """The warning for a mesh that is closed as built but would not be once its equal float32
     vertices were merged (``weld_float32``'s ``triangles`` and ``vertex_plane``; ``collapsed``: the
     facets of zero area it dropped): edges of four triangles where rings touch."""
-    a, b = triangles.ravel(), triangles[:, [1, 2, 0]].ravel()
-    n = len(vertex_plane)
-    keys, counts = np.unique(np.minimum(a, b) * n + np.maximum(a, b), return_counts=True)
-    doubled = keys[counts > 2]
-    ends = np.concatenate([doubled // n, doubled % n])
+    a, b = crowded_edges(triangles, len(vertex_plane))
+    ends = np.concatenate([a, b])
     named = np.unique(vertex_plane[ends][vertex_plane[ends] >= 0])
     shown = ", ".join(f"{planes_z[j]:.4f}" for j in named[:10]) + (", ..." if len(named) > 10 else "")
     return (
         f"at {len(named)} plane(s) (z = {shown} mm) ring vertices lie within the float32 rounding of each "
         "other (~1e-5 mm), as where the section touches itself or two solids touch: an STL reader, which "
-        f"merges vertices with equal float32 coordinates, gets {len(doubled)} edge(s) of four triangles "
+        f"merges vertices with equal float32 coordinates, gets {len(a)} edge(s) of four triangles "
         f"there (the contour touching itself) and {collapsed} facet(s) of zero area. The mesh is kept as "
         "built, closed (its 3MF, whose vertices are indexed, keeps them apart)"
     )
