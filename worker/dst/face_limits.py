@@ -306,7 +306,7 @@ class FaceLimits:
                 if not ok[0] or not 0.0 < t < 1.0:
                     break
                 if ev.strictly_contains(float(uv[0, 0]), float(uv[0, 1]), tol=TRIM_TOL_MM) and (
-                    not exact or ev.holds(tuple(p[0]), TRIM_TOL_MM)
+                    not exact or ev.holds(tuple(p[0]), TRIM_TOL_MM, tuple(uv[0]))
                 ):
                     hi, best = mid, (p[0], uv[0])
                 else:
@@ -314,7 +314,7 @@ class FaceLimits:
             return hi, best
 
         at, best = bisect(0.0, 1.0, False)
-        if best is None or ev.holds(tuple(best[0]), TRIM_TOL_MM):
+        if best is None or ev.holds(tuple(best[0]), TRIM_TOL_MM, tuple(best[1])):
             return best
         return bisect(at, 1.0, True)[1]
 

@@ -248,6 +248,9 @@ class RingSampler(Crossings, Traces, RunRefiner):
         fs = mesh.faces
         self._uv_box = np.array([(f.u0, f.u1, f.v0, f.v1) for f in fs], dtype=np.float64).reshape(-1, 4)
         self._box_checked = np.array([f.bounded for f in fs], dtype=bool).reshape(-1, 2)
+        self._trim_memo: dict[tuple[int, int], bool] = {}  # (face, vertex) -> in its trim (``_in_trim``)
+        # (face, chord end's xyz bytes) -> its (u, v) on the face (``_solve_from_chord``)
+        self._chord_end_uv: dict[tuple[int, bytes], tuple[float, float]] = {}
         uv = mesh.tri_uv
         # (u, v) size of each topology triangle: the scale of a Newton step from a seed
         self.tri_uv_scale = np.max(np.linalg.norm(uv - np.roll(uv, 1, axis=1), axis=2), axis=1) + 1e-12

@@ -148,3 +148,37 @@ def test_a_side_of_the_parameter_box_is_a_pole_only_where_its_iso_line_is_one_po
     got = [side for side in sides if ev.is_pole(*side)]
     assert sorted((a, round(b, 9)) for a, b in got) == sorted((a, round(b, 9)) for a, b in poles)
     assert [side for side in sides if ev.is_pole(*side)] == got  # the same answer, kept
+
+
+def test_a_point_holds_on_its_face_with_or_without_its_parameters_alike():
+    """``FaceEval.holds`` given a point's (u, v) skips BRepExtrema's distance where the surface's
+    point there is IN its face: the answer must be BRepExtrema's. A sphere (as B-splines) with a
+    5 mm hole through it: points on the surface at 5 mm +- 1e-7 to 1e-5 mm from the axis (the
+    trim's edge), inside and inside out, at tolerance 1e-6; some moved off the surface by twice
+    the tolerance, which no longer hold. Both answers occur, and the skipped distance does."""
+    import build123d as bd
+
+    holed = bd.Sphere(20.0) - bd.Cylinder(5.0, 60.0)
+    shape = BRepBuilderAPI_NurbsConvert(holed.wrapped, True).Shape()
+    (ev,) = [
+        f
+        for f in _faces(shape)
+        if np.linalg.norm(f.point(0.5 * (f.u0 + f.u1), 0.5 * (f.v0 + f.v1))) == pytest.approx(20.0)
+    ]
+    tol = 1e-6
+    rng = np.random.default_rng(3)
+    answers, skipped = [], 0
+    for r in (5.0 - 1e-5, 5.0 - 1e-6, 5.0 - 2e-7, 5.0 + 2e-7, 5.0 + 1e-6, 5.0 + 1e-5, 8.0, 12.0):
+        for a in rng.uniform(0.0, 2.0 * math.pi, 6).tolist():
+            z = math.sqrt(400.0 - r * r) * (1.0 if a < math.pi else -1.0)
+            xyz = (r * math.cos(a), r * math.sin(a), z)
+            uv = ev.uv_near(xyz, ev.uv_near(xyz, (0.0, 0.0)))
+            p = ev.point(*uv)
+            for off in (0.0, 2.0 * tol):
+                q = tuple(np.array(p) * (1.0 + off / 20.0))  # along the sphere's normal
+                fast = ev.holds(q, tol, uv)
+                assert fast == ev.holds(q, tol), (r, a, off)
+                answers.append(fast)
+                skipped += ev._surface_point_in_face(q, uv, tol)
+    assert any(answers) and not all(answers)
+    assert skipped > 0
