@@ -47,6 +47,10 @@ TRACE_MAX_STEPS = 20_000
 # found by Newton (at most this many steps) from the seed
 UV_NEAR_TOL_MM = 1e-9
 UV_NEAR_MAX_ITER = 8
+# ... and gives up early where a step moves the surface point less than this share of its distance
+# from the point, itself over this (mm): settled at the foot of a point off the surface
+SETTLED_STEP_REL = 1e-3
+SETTLED_GAP_MM = 1e-6
 
 _RTOL = 4.5 * 2.220446049250313e-16  # brentq refuses anything below 4 * machine epsilon
 
@@ -164,8 +168,17 @@ class FaceEval:
             if not det > 1e-12 * a11 * a22:  # (also NaN) a pole, or tangents nearly parallel
                 break
             b1, b2 = ux * rx + uy * ry + uz * rz, vx * rx + vy * ry + vz * rz
-            u += (a22 * b1 - a12 * b2) / det
-            v += (a11 * b2 - a12 * b1) / det
+            su, sv = (a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det
+            if there is None and gap2 > SETTLED_GAP_MM * SETTLED_GAP_MM:
+                # the step's length on the surface: where it is a sliver of the gap, the residual is
+                # along the normal (a foot point off the surface): it will not come within the
+                # tolerance, and ``uv_near`` projects instead (the chord points ``refine`` projects,
+                # off the curve by their chord's sag, end here)
+                step2 = su * su * a11 + 2.0 * su * sv * a12 + sv * sv * a22
+                if step2 < SETTLED_STEP_REL * SETTLED_STEP_REL * gap2:
+                    return None
+            u += su
+            v += sv
         if there is None:
             return None
         u, v = there[0], there[1]

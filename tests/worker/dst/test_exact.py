@@ -182,3 +182,44 @@ def test_a_point_holds_on_its_face_with_or_without_its_parameters_alike():
                 skipped += ev._surface_point_in_face(q, uv, tol)
     assert any(answers) and not all(answers)
     assert skipped > 0
+
+
+class _CountingD1:
+    """A surface adaptor that counts its D1 evaluations (for ``FaceEval._newton_uv``)."""
+
+    def __init__(self, ad):
+        self.ad, self.calls = ad, 0
+
+    def D1(self, *args):
+        self.calls += 1
+        return self.ad.D1(*args)
+
+    def __getattr__(self, name):
+        return getattr(self.ad, name)
+
+
+def test_newton_gives_up_once_it_settles_at_the_foot_of_a_point_off_the_surface():
+    """A point 0.01 mm off the B-spline surface (a chord's point, which ``refine`` projects): Newton
+    settles at its foot in a few steps and stops there, not after all ``UV_NEAR_MAX_ITER`` (the
+    projection then comes from ``uv_near``'s fallback, at the foot). A point on the surface from the
+    same seed, and one 1e-10 mm off (within the tolerance), are still found."""
+    from worker.dst.exact import UV_NEAR_MAX_ITER
+
+    ev = _curved("bspline")
+    u, v = 1.0, 0.3
+    p = np.array(ev.point(u, v))
+    ev.ad.D1(u, v, ev._p, ev._du, ev._dv)
+    n = np.cross(ev._du.Coord(), ev._dv.Coord())
+    n /= np.linalg.norm(n)
+    seed = (u + 0.02, v - 0.02)
+    counting = _CountingD1(ev.ad)
+    ev.ad = counting
+    try:
+        assert ev._newton_uv(tuple(p + 0.01 * n), seed) is None
+        assert counting.calls < UV_NEAR_MAX_ITER
+        for off in (0.0, 1e-10):
+            assert ev._newton_uv(tuple(p + off * n), seed) == pytest.approx((u, v), abs=1e-9)
+    finally:
+        ev.ad = counting.ad
+    got = ev.uv_near(tuple(p + 0.01 * n), seed)
+    assert got == pytest.approx((u, v), abs=1e-7)
