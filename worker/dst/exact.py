@@ -118,14 +118,19 @@ class FaceEval:
             self._batch = evaluator(self.ad)
         return self._batch
 
-    def uv_near(self, xyz: tuple[float, float, float], seed: tuple[float, float]) -> tuple[float, float]:
+    def uv_near(
+        self, xyz: tuple[float, float, float], seed: tuple[float, float], *, foot: bool = False
+    ) -> tuple[float, float]:
         """(u, v) of a point on the surface, on the parameter branch nearest ``seed`` (periodic surfaces).
 
         A point lying on the surface (within ``UV_NEAR_TOL_MM``) is found by Newton from the seed;
         any other (off the surface by an edge's tolerance, or Newton failing: a pole, a seed too far)
         by ``ShapeAnalysis_Surface.NextValueOfUV``, which took 0.3 ms a point on a B-spline surface
-        even for points on it (0.06 s of the hemisphere's 0.41 s DST build)."""
-        uv = self._newton_uv(xyz, seed)
+        even for points on it (0.06 s of the hemisphere's 0.41 s DST build).
+        ``foot``: for a point off the surface, where Newton settles at its foot inside the parameter
+        box, that foot (its step on the surface then under ``SETTLED_STEP_REL`` of the gap: a seed
+        for another solve, not a projection to rounding) instead of ``NextValueOfUV``'s."""
+        uv = self._newton_uv(xyz, seed, foot)
         if uv is not None:
             return self.same_branch(uv, seed)
         if self._sas is None:
@@ -138,7 +143,7 @@ class FaceEval:
         return self.same_branch((p.X(), p.Y()), seed)
 
     def _newton_uv(
-        self, xyz: tuple[float, float, float], seed: tuple[float, float]
+        self, xyz: tuple[float, float, float], seed: tuple[float, float], foot: bool = False
     ) -> tuple[float, float] | None:
         """(u, v) where the surface passes within ``UV_NEAR_TOL_MM`` of ``xyz``, by Gauss-Newton on
         the distance from ``seed`` (one step more once there: the projection refines to rounding).
@@ -172,11 +177,14 @@ class FaceEval:
             if there is None and gap2 > SETTLED_GAP_MM * SETTLED_GAP_MM:
                 # the step's length on the surface: where it is a sliver of the gap, the residual is
                 # along the normal (a foot point off the surface): it will not come within the
-                # tolerance, and ``uv_near`` projects instead (the chord points ``refine`` projects,
-                # off the curve by their chord's sag, end here)
+                # tolerance: ``uv_near`` projects instead, or takes this foot as a seed (``foot``:
+                # the chord points ``refine`` solves from, off the curve by their chord's sag)
                 step2 = su * su * a11 + 2.0 * su * sv * a12 + sv * sv * a22
                 if step2 < SETTLED_STEP_REL * SETTLED_STEP_REL * gap2:
-                    return None
+                    if not foot:
+                        return None
+                    there = (u + su, v + sv, gap2)
+                    break
             u += su
             v += sv
         if there is None:

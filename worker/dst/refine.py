@@ -72,6 +72,13 @@ MAX_SAMPLE_GAP = 0.5
 # rounds of the check of segments with an inflection inside (each: those the last round split)
 MAX_INFLECTION_ROUNDS = 4
 MAX_END_BEND_ROUNDS = 6
+# ``_d1``: a face's points are evaluated by its vectorised evaluator in batches of at least this
+# many (with derivatives; the point alone), one by one by OCCT's D1 below that: scipy's NdBSpline
+# costs ~30 us a call whatever the batch (three calls with derivatives), OCCT's D1 ~3-8 us a point,
+# and most of a big part's batches are of one to four points (trj7_b1-ec-214's reference: 152,000
+# of its 512,000 B-spline batches hold one point, 107,000 two)
+BATCH_MIN_D1 = 8
+BATCH_MIN_P = 4
 MAX_REFINE_ROUNDS = 40  # halving a segment 24 times takes 1 m down to 60 nm: still failing means broken
 
 
@@ -491,7 +498,7 @@ class RunRefiner(FaceLimits, RunEnds):
         (u, v))."""
         uv = np.array(
             [
-                self.mesh.faces[f].uv_near(tuple(g), self._chord_end_on(f, a))
+                self.mesh.faces[f].uv_near(tuple(g), self._chord_end_on(f, a), foot=True)
                 for f, g, a in zip(face.tolist(), guess, pa, strict=True)
             ]
         ).reshape(-1, 2)
@@ -743,29 +750,36 @@ class RunRefiner(FaceLimits, RunEnds):
     def _d1(
         self, fa: np.ndarray, ua: np.ndarray, va: np.ndarray, ads, p, du, dv, derivatives: bool = True
     ) -> np.ndarray:
-        """(n, 9) rows P, Pu, Pv: closed forms for elementary faces, OCCT's D1 for the others.
+        """(n, 9) rows P, Pu, Pv: the face's vectorised evaluator (``analytic``) for a batch of a
+        face's points, OCCT's D1 point by point for a face it does not cover and for a few points
+        (``BATCH_MIN_D1``, ``BATCH_MIN_P``).
 
         With ``derivatives=False`` only P is guaranteed (the B-spline evaluator skips Pu and Pv)."""
         res = np.empty((len(fa), 9))
         an = self._analytic[fa]
-        other = np.flatnonzero(~an)
+        idx = np.flatnonzero(an)
+        few = np.zeros(len(fa), dtype=bool)
+        if idx.size:
+            order = idx[np.argsort(fa[idx], kind="stable")]
+            faces, starts = np.unique(fa[order], return_index=True)
+            bounds = np.append(starts, len(order))
+            least = BATCH_MIN_D1 if derivatives else BATCH_MIN_P
+            for k, f in enumerate(faces.tolist()):
+                sel = order[bounds[k] : bounds[k + 1]]
+                if len(sel) < least:
+                    few[sel] = True
+                    continue
+                P, Pu, Pv = self._evals[f](ua[sel], va[sel], derivatives)
+                res[sel, 0:3] = P
+                if Pu is not None:
+                    res[sel, 3:6], res[sel, 6:9] = Pu, Pv
+        other = np.flatnonzero(~an | few)
         if other.size:
             rows = []
             for f, uu, vv in zip(fa[other].tolist(), ua[other].tolist(), va[other].tolist(), strict=True):
                 ads[f].D1(uu, vv, p, du, dv)
                 rows.append(p.Coord() + du.Coord() + dv.Coord())
             res[other] = np.array(rows).reshape(-1, 9)
-        idx = np.flatnonzero(an)
-        if idx.size:
-            order = idx[np.argsort(fa[idx], kind="stable")]
-            faces, starts = np.unique(fa[order], return_index=True)
-            bounds = np.append(starts, len(order))
-            for k, f in enumerate(faces.tolist()):
-                sel = order[bounds[k] : bounds[k + 1]]
-                P, Pu, Pv = self._evals[f](ua[sel], va[sel], derivatives)
-                res[sel, 0:3] = P
-                if Pu is not None:
-                    res[sel, 3:6], res[sel, 6:9] = Pu, Pv
         return res
 
     def _newton(

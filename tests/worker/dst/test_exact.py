@@ -223,3 +223,53 @@ def test_newton_gives_up_once_it_settles_at_the_foot_of_a_point_off_the_surface(
         ev.ad = counting.ad
     got = ev.uv_near(tuple(p + 0.01 * n), seed)
     assert got == pytest.approx((u, v), abs=1e-7)
+
+
+def test_a_seed_for_a_point_off_the_surface_is_its_foot_without_occts_projection():
+    """``uv_near(..., foot=True)`` (a seed for solving a chord's point onto a section): for points
+    0.001-0.05 mm off a B-spline surface, over it and under it, Newton's settled foot, within a few
+    steps and without ``ShapeAnalysis_Surface``: the surface point there is the point's foot (it
+    was offset along the normal) to 1e-5 of the gap, where OCCT's projection is to 1e-9 mm. A
+    point whose foot lies past the parameter box (beyond an edge of the surface) still gets
+    OCCT's projection."""
+    from worker.dst.exact import UV_NEAR_MAX_ITER
+
+    ev = _curved("bspline")
+    rng = np.random.default_rng(11)
+    for _ in range(12):
+        u = float(rng.uniform(ev.u0 + 0.2 * (ev.u1 - ev.u0), ev.u1 - 0.2 * (ev.u1 - ev.u0)))
+        v = float(rng.uniform(ev.v0 + 0.2 * (ev.v1 - ev.v0), ev.v1 - 0.2 * (ev.v1 - ev.v0)))
+        p = np.array(ev.point(u, v))
+        ev.ad.D1(u, v, ev._p, ev._du, ev._dv)
+        n = np.cross(ev._du.Coord(), ev._dv.Coord())
+        n /= np.linalg.norm(n)
+        for gap in (1e-3, -0.01, 0.05):
+            q = tuple(p + gap * n)
+            seed = (u + 0.01 * (ev.u1 - ev.u0), v - 0.01 * (ev.v1 - ev.v0))
+            ev._sas = None
+            counting = _CountingD1(ev.ad)
+            ev.ad = counting
+            try:
+                got = ev.uv_near(q, seed, foot=True)
+            finally:
+                ev.ad = counting.ad
+            assert ev._sas is None  # OCCT's projection was not needed
+            assert counting.calls < UV_NEAR_MAX_ITER
+            assert np.linalg.norm(np.array(ev.point(*got)) - p) < 1e-5 * abs(gap)
+            assert np.linalg.norm(np.array(ev.point(*ev.uv_near(q, seed))) - p) < 1e-9
+    # past the box: a point beyond the top edge of a cylinder (as B-splines), whose foot on the
+    # surface's extension is off the face
+    import build123d as bd
+
+    shape = BRepBuilderAPI_NurbsConvert(bd.Cylinder(10.0, 20.0).wrapped, True).Shape()
+    (side,) = [f for f in _faces(shape) if f.ad.IsUPeriodic() or f.ad.IsVPeriodic()]
+    axis = 1 if side.ad.IsUPeriodic() else 0
+    u, v = (0.5 * (side.u0 + side.u1), side.v1) if axis == 1 else (side.u1, 0.5 * (side.v0 + side.v1))
+    side.ad.D1(u, v, side._p, side._du, side._dv)
+    along = np.array((side._dv if axis == 1 else side._du).Coord())
+    n = np.cross(side._du.Coord(), side._dv.Coord())
+    out = np.array(side.point(u, v)) + 0.5 * along / np.linalg.norm(along) + 0.01 * n / np.linalg.norm(n)
+    seed = (u, v - 0.05 * (side.v1 - side.v0)) if axis == 1 else (u - 0.05 * (side.u1 - side.u0), v)
+    assert side._newton_uv(tuple(out), seed, foot=True) is None
+    assert side.uv_near(tuple(out), seed, foot=True) == side.uv_near(tuple(out), seed)
+    assert side._sas is not None

@@ -773,3 +773,42 @@ def test_a_vertex_the_loop_comes_back_to_has_no_one_place():
 def test_a_loop_all_at_one_vertex_keeps_every_crossing():
     starts, twice = _loop_passes([(100, []), (100, [])])
     assert starts == {100: (10, 0)} and twice == {100}
+
+
+def test_surface_points_are_the_same_whether_a_batch_or_occt_evaluates_them(tmp_path):
+    """``RunRefiner._d1`` evaluates a face's points with its vectorised evaluator in batches of at
+    least ``BATCH_MIN_D1`` (``BATCH_MIN_P`` without derivatives) and one by one with OCCT's D1 below
+    that (a call of the evaluator costs as much as several points of OCCT's). Either way the rows
+    are OCCT's point and derivatives, on a B-spline hemisphere and its flat bottom, mixed in one
+    call; only the large batches reach the evaluator."""
+    from OCP.gp import gp_Pnt, gp_Vec
+
+    from tests.conftest import build_part, write_step
+    from worker.dst.refine import BATCH_MIN_D1, BATCH_MIN_P
+
+    mesh = _topomesh_of(write_step(build_part("hemisphere", radius=20.0), tmp_path / "h.step"))
+    topo = cut_topology(mesh, np.array([5.0]), on_plane_tol=C.ON_PLANE_TOL_MM, noise_tol=np.zeros(1))
+    s = RingSampler(mesh, topo, VertexPool(), segment_length=1.0, chord_error=0.01)
+    assert s._analytic.all()
+    calls = []
+    evals = list(s._evals)
+    s._evals = [
+        (lambda u, v, d, f=f, ev=ev: calls.append((f, len(u))) or ev(u, v, d)) for f, ev in enumerate(evals)
+    ]
+    rng = np.random.default_rng(5)
+    p, du, dv = gp_Pnt(), gp_Vec(), gp_Vec()
+    for derivatives, least in ((True, BATCH_MIN_D1), (False, BATCH_MIN_P)):
+        for sizes in ((1, least + 3), (least - 1, 1), (least, least + 20)):
+            fa = np.repeat(np.arange(2), sizes)
+            rng.shuffle(fa)
+            ua = np.array([rng.uniform(mesh.faces[f].u0, mesh.faces[f].u1) for f in fa])
+            lo, hi = (np.array([getattr(mesh.faces[f], k) for f in fa]) for k in ("v0", "v1"))
+            va = rng.uniform(lo + 0.1 * (hi - lo), hi - 0.1 * (hi - lo))
+            calls.clear()
+            got = s._d1(fa, ua, va, s._ads, p, du, dv, derivatives=derivatives)
+            assert sorted(calls) == [(f, n) for f, n in enumerate(sizes) if n >= least]
+            for row, f, u, v in zip(got, fa.tolist(), ua.tolist(), va.tolist(), strict=True):
+                s._ads[f].D1(u, v, p, du, dv)
+                want = np.array(p.Coord() + du.Coord() + dv.Coord())
+                cols = 9 if derivatives else 3
+                np.testing.assert_allclose(row[:cols], want[:cols], rtol=0, atol=1e-9)
