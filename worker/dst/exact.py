@@ -150,7 +150,8 @@ class FaceEval:
         None if it does not get there in ``UV_NEAR_MAX_ITER`` steps, the surface's tangents are
         degenerate on the way, or it ends beyond the parameter box in a direction that does not
         wrap (on the surface's extension, or at another parameter of the same point, as a sphere's
-        v past a pole, which the face's trim does not hold)."""
+        v past a pole, which the face's trim does not hold). ``foot``: where it settles at the foot
+        of a point off the surface (see below), that foot, subject to the same box."""
         p, du, dv = self._p, self._du, self._dv
         px, py, pz = xyz
         u, v = float(seed[0]), float(seed[1])
