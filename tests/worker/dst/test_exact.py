@@ -243,9 +243,9 @@ def test_a_seed_for_a_point_off_the_surface_is_its_foot_without_occts_projection
         ev.ad.D1(u, v, ev._p, ev._du, ev._dv)
         n = np.cross(ev._du.Coord(), ev._dv.Coord())
         n /= np.linalg.norm(n)
+        seed = (u + 0.01 * (ev.u1 - ev.u0), v - 0.01 * (ev.v1 - ev.v0))
         for gap in (1e-3, -0.01, 0.05):
             q = tuple(p + gap * n)
-            seed = (u + 0.01 * (ev.u1 - ev.u0), v - 0.01 * (ev.v1 - ev.v0))
             ev._sas = None
             counting = _CountingD1(ev.ad)
             ev.ad = counting
