@@ -108,12 +108,13 @@ def _params(path: Path) -> SliceParams:
 
 
 def _distance_to_segments(p: np.ndarray, a: np.ndarray, b: np.ndarray, k: int = 8) -> np.ndarray:
-    """For each point, the distance (mm, xy) to the nearest of the segments a-b.
+    """For each point, the distance (mm, xy) to the nearest of the segments a-b (exactly).
 
-    Candidates are the ``k`` segments with the nearest midpoints (a KD-tree), which can miss a long
-    segment beside many short ones (a miss only overstates a distance): where a segment not among
-    them could be nearer (its midpoint is beyond the k-th, but its half length may reach back), the
-    point is measured against every segment.
+    The segments are cut into pieces no longer than ``h`` (most segments stay whole); candidates are
+    the ``k`` pieces with the nearest midpoints (a KD-tree). A piece not among them has its midpoint
+    beyond the k-th, so it is at least that far less ``h / 2``: points whose nearest candidate is
+    farther than that are asked again with more candidates, and the few still unsure are measured
+    against every segment.
     """
     from scipy.spatial import cKDTree
 
@@ -122,12 +123,28 @@ def _distance_to_segments(p: np.ndarray, a: np.ndarray, b: np.ndarray, k: int = 
         t = np.clip(((q - sa) * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-300), 0, 1)
         return np.linalg.norm(q - (sa + t[..., None] * ab), axis=-1).min(axis=-1)
 
-    k = min(k, len(a))
-    dk, idx = cKDTree(0.5 * (a + b)).query(p, k=k)
-    dk, idx = dk.reshape(len(p), k), idx.reshape(len(p), k)
-    d = to(p[:, None, :], a[idx], b[idx])
-    unsure = np.flatnonzero(d > dk[:, -1] - 0.5 * np.linalg.norm(b - a, axis=1).max())
-    for i in unsure:
+    length = np.linalg.norm(b - a, axis=1)
+    h = max(float(np.quantile(length, 0.9)), 1e-9)
+    n = np.maximum(np.ceil(length / h).astype(np.int64), 1)
+    seg = np.repeat(np.arange(len(a)), n)
+    j = np.arange(len(seg)) - np.repeat(np.cumsum(n) - n, n)
+    ab = (b - a)[seg]
+    pa = a[seg] + (j / n[seg])[:, None] * ab
+    pb = a[seg] + ((j + 1) / n[seg])[:, None] * ab
+    tree = cKDTree(0.5 * (pa + pb))
+    d = np.full(len(p), np.inf)
+    todo = np.arange(len(p))
+    for kk in (k, 8 * k):
+        kk = min(kk, len(pa))
+        dk, idx = tree.query(p[todo], k=kk)
+        dk, idx = dk.reshape(len(todo), kk), idx.reshape(len(todo), kk)
+        d[todo] = to(p[todo][:, None, :], pa[idx], pb[idx])
+        if kk == len(pa):
+            return d
+        todo = todo[d[todo] > dk[:, -1] - 0.5 * h]
+        if not len(todo):
+            return d
+    for i in todo:
         d[i] = to(p[i], a, b)
     return d
 
