@@ -237,6 +237,8 @@ def _solid_sections(
         lowered = np.concatenate([np.zeros(len(world), dtype=bool), np.ones(len(j), dtype=bool)])[order]
         tight = 0.25 * offset
         cut = cut_topology(placed, ext[order], on_plane_tol=tight, noise_tol=np.full(len(ext), tight))
+        if offset != FLAT_FACE_OFFSETS_MM[-1]:
+            _flat_planes_resolve(placed, cut, np.isin(owner, j), chord, segment_length)
         on, below, unresolved = _sample(
             placed, cut, owner, lowered, topo.flat_planes, chord, segment_length, helper
         )
@@ -246,6 +248,20 @@ def _solid_sections(
         return on, below, unresolved, offset
 
     return _first_that_works(at, FLAT_FACE_OFFSETS_MM)
+
+
+def _flat_planes_resolve(mesh, cut, flat_cut: np.ndarray, chord: float, segment_length: float) -> None:
+    """Raise TessellationError where the loops of ``cut``'s planes marked in ``flat_cut`` (those just
+    above and below the flat faces) cannot be sampled, or not to the chord: an offset that fails there
+    fails at once, without sampling every other plane first (bug29241's reference sampled all its
+    1,400 planes at three offsets that failed at one flat face or the other: 30 s of its 64). Where they
+    pass, ``_sample`` samples every plane as before (these loops again, among their shares): the
+    sections are those of the offset that works, as without this check."""
+    ids = [li for li, (e, _) in enumerate(cut.loops) if flat_cut[int(e)]]
+    if ids:
+        _, unresolved = _sample_loops(mesh, cut, ids, chord, segment_length)
+        if unresolved:
+            raise TessellationError(f"{len(unresolved)} unresolved segments next to a flat face")
 
 
 def _first_that_works(fn: Callable[[float], T], values: tuple[float, ...]) -> T:

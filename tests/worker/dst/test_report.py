@@ -21,11 +21,12 @@ from scipy.spatial import cKDTree
 
 from tests.worker.dst.meshcheck import occt_section_points
 from worker.dst.baselines import BASELINE_PRESETS, parse_baselines
+from worker.dst.errors import TessellationError
 from worker.dst.params import SliceParams
 from worker.dst.pipeline import slice_step
 from worker.dst.reference import closed_length, exact_sections, occt_sections
 from worker.dst.report import MeshInput, Report, build_report, slicer_preset_warning
-from worker.dst.step_io import occt_version, read_step, solid_volume
+from worker.dst.step_io import LoadedPart, occt_version, read_step, solid_volume
 
 R = 20.0
 
@@ -255,11 +256,9 @@ def test_flat_face_outline_is_the_limit_at_a_tangent_fillet(tmp_path):
     assert occt.layers[20].vertex_dev < report.reference.resolution_mm
 
 
-def test_flat_face_with_a_vertex_off_its_plane_by_the_file_tolerance(tmp_path, monkeypatch):
-    """A B-rep vertex a few hundredths of a micrometre below a horizontal plane face (as on
-    trj7_b1-ec-214) still belongs to the flat face: it is put on the plane with the face, so the
-    sections just below and above the face are found (a plane moved below the face used to cut the
-    face's triangles there, where its surface has no point: a tessellation error)."""
+def _step_box_with_a_vertex_off_its_step(tmp_path, monkeypatch) -> tuple[LoadedPart, list[int]]:
+    """The stepped box, its reference topology meshes with a corner of the step face 2.85e-5 mm
+    below it (as a file's tolerance leaves one), and the list of the corners moved."""
     from tests.conftest import build_part, write_step
     from worker.dst import reference
 
@@ -283,11 +282,65 @@ def test_flat_face_with_a_vertex_off_its_plane_by_the_file_tolerance(tmp_path, m
         return mesh
 
     monkeypatch.setattr(reference, "_topomesh", off_by_tolerance)
+    return part, moved
+
+
+def test_flat_face_with_a_vertex_off_its_plane_by_the_file_tolerance(tmp_path, monkeypatch):
+    """A B-rep vertex a few hundredths of a micrometre below a horizontal plane face (as on
+    trj7_b1-ec-214) still belongs to the flat face: it is put on the plane with the face, so the
+    sections just below and above the face are found (a plane moved below the face used to cut the
+    face's triangles there, where its surface has no point: a tessellation error)."""
+    part, moved = _step_box_with_a_vertex_off_its_step(tmp_path, monkeypatch)
     heights = 0.1 + 0.2 * np.arange(35)
     ref = exact_sections(part, heights, chord=1e-3, segment_length=2.0, deflection=0.01)
     assert moved and ref.flat_planes == [20]
     assert ref.perimeters()[20] == pytest.approx(40.0, abs=1e-6)
     assert sum(map(closed_length, ref.below_loops[20])) == pytest.approx(80.0, abs=1e-6)
+
+
+def test_an_offset_that_fails_at_a_flat_face_is_left_before_every_plane_is_sampled(tmp_path, monkeypatch):
+    """The offsets from a flat face are tried in turn, and one that fails next to the face is left
+    after sampling the face's own loops: every plane is sampled once, at the offset that works, to the
+    sections that sampling every plane at every offset tried gives. (On bug29241 the three smaller
+    offsets fail at one flat face or the other; here the sampler is made to fail on loops within 1e-6
+    mm of the step face, so 4e-9 and 1e-7 mm fail and 2e-6 mm works.)"""
+    from worker.dst import reference
+
+    part, _ = _step_box_with_a_vertex_off_its_step(tmp_path, monkeypatch)
+    heights = 0.1 + 0.2 * np.arange(35)
+    sample_loops, sample = reference._sample_loops, reference._sample
+    offsets, sampled = [], []
+
+    def failing_next_to_the_face(mesh, topo, loop_ids, *args):
+        # the planes either side of the face: two offsets apart
+        order = np.argsort(topo.planes)
+        gaps = np.diff(topo.planes[order])
+        side = np.zeros(len(order), dtype=bool)
+        side[order[:-1][gaps < 2.1e-6]] = side[order[1:][gaps < 2.1e-6]] = True
+        if any(side[topo.loops[i][0]] for i in loop_ids):
+            offsets.append(0.5 * gaps.min())
+            raise TessellationError("no exact point next to the face (simulated)")
+        return sample_loops(mesh, topo, loop_ids, *args)
+
+    def counted(mesh, topo, *args, **kwargs):
+        sampled.append(0.5 * np.diff(np.sort(topo.planes)).min())
+        return sample(mesh, topo, *args, **kwargs)
+
+    monkeypatch.setattr(reference, "_sample_loops", failing_next_to_the_face)
+    monkeypatch.setattr(reference, "_sample", counted)
+    ref = exact_sections(part, heights, chord=1e-3, segment_length=2.0, deflection=0.01, helper=False)
+    assert ref.flat_planes == [20] and "2e-06 mm above and below the face" in ref.method
+    assert offsets == pytest.approx([4e-9, 1e-7], rel=1e-3)  # failed on the face's loops alone
+    assert sampled == pytest.approx([2e-6], rel=1e-3)  # every plane sampled once
+    # without the check first, every offset tried samples every plane, to the same sections
+    monkeypatch.setattr(reference, "_flat_planes_resolve", lambda *args: None)
+    offsets.clear()
+    sampled.clear()
+    every = exact_sections(part, heights, chord=1e-3, segment_length=2.0, deflection=0.01, helper=False)
+    assert sampled == pytest.approx([4e-9, 1e-7, 2e-6], rel=1e-3)
+    for a, b in ((ref.loops, every.loops), ([ref.below_loops[20]], [every.below_loops[20]])):
+        assert [[lp.tolist() for lp in ls] for ls in a] == [[lp.tolist() for lp in ls] for ls in b]
+    assert ref.perimeters()[20] == pytest.approx(40.0, abs=1e-6)
 
 
 def test_reference_finds_the_sliver_below_a_horizontal_hole_top(tmp_path):
