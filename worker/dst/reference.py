@@ -237,13 +237,14 @@ def _solid_sections(
         lowered = np.concatenate([np.zeros(len(world), dtype=bool), np.ones(len(j), dtype=bool)])[order]
         tight = 0.25 * offset
         cut = cut_topology(placed, ext[order], on_plane_tol=tight, noise_tol=np.full(len(ext), tight))
-        if offset != FLAT_FACE_OFFSETS_MM[-1]:
+        others_left = offset != FLAT_FACE_OFFSETS_MM[-1]
+        if others_left:
             _flat_planes_resolve(placed, cut, np.isin(owner, j), chord, segment_length)
         on, below, unresolved = _sample(
             placed, cut, owner, lowered, topo.flat_planes, chord, segment_length, helper
         )
         # segments left unresolved at one offset may not be at the next, as one that fails there
-        if unresolved and offset != FLAT_FACE_OFFSETS_MM[-1]:
+        if unresolved and others_left:
             raise TessellationError(f"{len(unresolved)} unresolved segments")
         return on, below, unresolved, offset
 

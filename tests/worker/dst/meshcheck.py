@@ -94,23 +94,22 @@ def occt_section_points(solid, z: float, step: float = 0.02) -> np.ndarray:
         if not sampler.IsDone():
             continue
         u = np.array([sampler.Parameter(i) for i in range(1, sampler.NbPoints() + 1)])
-        if curve.GetType() in (GeomAbs_Line, GeomAbs_Circle):
-            pts.append(_line_or_circle_points(curve, u))
+        kind = curve.GetType()
+        if kind in (GeomAbs_Line, GeomAbs_Circle):
+            pts.append(_line_or_circle_points(curve, u, kind == GeomAbs_Line))
         else:
             pts.append(np.array([curve.Value(t).Coord() for t in u.tolist()]))
     return np.concatenate(pts).reshape(-1, 3) if pts else np.empty((0, 3))
 
 
-def _line_or_circle_points(curve, u: np.ndarray) -> np.ndarray:
-    """The points of a line or circle ``curve`` at parameters ``u``, computed together (a big part's
-    sections hold millions of such points), checked against OCCT's own points at the ends and in the
-    middle."""
-    from OCP.GeomAbs import GeomAbs_Line
-
+def _line_or_circle_points(curve, u: np.ndarray, line: bool) -> np.ndarray:
+    """The points of a line (``line``) or circle ``curve`` at parameters ``u``, computed together (a
+    big part's sections hold millions of such points), checked against OCCT's own points at the ends
+    and in the middle."""
     n = len(u)
-    if curve.GetType() == GeomAbs_Line:
-        line = curve.Line()
-        out = np.array(line.Location().Coord()) + u[:, None] * np.array(line.Direction().Coord())
+    if line:
+        lin = curve.Line()
+        out = np.array(lin.Location().Coord()) + u[:, None] * np.array(lin.Direction().Coord())
     else:
         circle = curve.Circle()
         ax = circle.Position()
