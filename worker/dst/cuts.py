@@ -16,6 +16,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from worker.dst.chords import distances_to_segments
+from worker.dst.meshops import unique_ints
 
 _PLANE_SEPARATION_MM = 1e7  # farther than any two points of a part in one plane
 _PAIR_PIECES = 2.0  # see segment_pairs_near
@@ -336,7 +337,7 @@ def segment_pairs_near(
         idx = idx.reshape(len(owner), -1)
         found = idx < len(owner)
         i, k = owner[np.nonzero(found)[0]], owner[idx[found]]
-    key = np.unique((np.minimum(i, k) * len(a) + np.maximum(i, k))[i != k])
+    key = unique_ints((np.minimum(i, k) * len(a) + np.maximum(i, k))[i != k])
     return key // len(a), key % len(a)
 
 

@@ -26,6 +26,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import minimize
 
+from worker.dst.meshops import unique_ints
 from worker.dst.splits import curve_span, edge_extreme_between, split_edges, split_triangle
 from worker.dst.topomesh import TopoMesh
 
@@ -100,7 +101,7 @@ def _extreme(meshes: list[TopoMesh], *, sign: float) -> tuple[int, Where, np.nda
             (float(h[n0]), ("node", n0), mesh.xyz[n0].copy())
         ]
         tri_mask = np.isin(mesh.tris, low_nodes).any(axis=1)
-        for f in np.unique(mesh.tri_face[tri_mask]).tolist():
+        for f in unique_ints(mesh.tri_face[tri_mask]).tolist():
             candidates.extend(_face_extreme(mesh, f, tri_mask, sign))
         edge_ids = {ei for (a, b), ei in mesh.edge_of.items() if a in low_set or b in low_set}
         for ei in sorted(edge_ids):
@@ -302,9 +303,9 @@ def snap_local_extremes(mesh: TopoMesh, planes: np.ndarray) -> int:
 
 def _snap_node(mesh: TopoMesh, node: int, sign: float) -> int:
     tri, corner = np.nonzero(mesh.tris == node)
-    faces = np.unique(mesh.tri_face[tri])
+    faces = unique_ints(mesh.tri_face[tri])
     old = mesh.xyz[node]
-    fan = mesh.xyz[np.unique(mesh.tris[tri])]
+    fan = mesh.xyz[unique_ints(mesh.tris[tri])]
     reach = float(np.linalg.norm(fan - old, axis=1).max())
     if len(faces) > 1:  # on a B-rep edge: its extreme along the edge
         p = _edge_node_optimum(mesh, node, sign)

@@ -30,7 +30,7 @@ from worker.dst.deviation import (
     loop_successors,
     span_curvatures,
 )
-from worker.dst.meshops import edge_defects, signed_volume
+from worker.dst.meshops import edge_defects, signed_volume, unique_ints
 from worker.dst.report_schema import Layer, MeshReport, Summary
 
 # Measuring costs ~3.5 us of CPU per cut segment and ~0.8 us per reference span (fitted on the four
@@ -278,7 +278,7 @@ def plane_ranges(cost: np.ndarray, chunk: float) -> list[tuple[int, int]]:
         return [(0, n)]
     cum = np.cumsum(cost)
     cuts = np.searchsorted(cum, cum[-1] * np.arange(1, parts) / parts)
-    edges = np.unique(np.concatenate([[0], np.clip(cuts, 1, n - 1), [n]]))
+    edges = unique_ints(np.concatenate([[0], np.clip(cuts, 1, n - 1), [n]]))
     return list(zip(edges[:-1].tolist(), edges[1:].tolist(), strict=True))
 
 

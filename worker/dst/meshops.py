@@ -5,23 +5,39 @@ from __future__ import annotations
 import numpy as np
 
 
+def unique_ints(x: np.ndarray) -> np.ndarray:
+    """``np.unique(x)`` of an integer array (flattened), by sorting: numpy 2.3+ finds the unique
+    values of an integer array with a hash table, up to 10x slower than a sort where most values
+    are distinct (a topology mesh's node ids: 600,000 of which 300,000 distinct, 0.31 s against
+    0.04 s), and never much faster."""
+    s = np.sort(np.ravel(x))
+    return s[np.concatenate([[True], s[1:] != s[:-1]])] if len(s) else s
+
+
 def edge_defects(tris: np.ndarray, n_vertices: int) -> tuple[int, int]:
     """(open, non-manifold) directed-edge counts; both 0 for a closed, consistently oriented 2-manifold.
 
-    A directed edge is open when its reverse is missing, non-manifold when it occurs more than once.
+    A directed edge is open when its reverse is missing (each occurrence counts), non-manifold when
+    it occurs more than once (it counts once); an edge from a vertex to itself (a corner repeated)
+    is its own reverse.
     """
     if len(tris) == 0:
         return 0, 0
     a = tris.ravel()
     b = tris[:, [1, 2, 0]].ravel()
-    key = np.sort(a * n_vertices + b)  # directed edges a->b
-    rkey = np.sort(b * n_vertices + a)  # their reverses
-    same = key[1:] == key[:-1]
-    # each run of equal keys counts once
-    nonmanifold = int(np.count_nonzero(same[1:] & ~same[:-1])) + int(same[:1].sum())
-    if nonmanifold == 0 and np.array_equal(key, rkey):
-        return 0, 0
-    return int(np.count_nonzero(_missing(rkey, key))), nonmanifold
+    # One sort: each edge's undirected key, times two, plus 1 for the edges running from the higher
+    # vertex to the lower. Each run of one key then holds the edge's forward occurrences, then its
+    # backward ones. (Two sorts, of the directed keys and of their reverses, took twice as long: 1.0
+    # s against 0.56 s on 2 million triangles.)
+    key = np.sort(2 * (np.minimum(a, b) * n_vertices + np.maximum(a, b)) + (a > b))
+    start = np.flatnonzero(np.concatenate([[True], (key[1:] >> 1) != (key[:-1] >> 1)]))
+    back = np.add.reduceat(key & 1, start)
+    forth = np.diff(np.append(start, len(key))) - back
+    nonmanifold = int(np.count_nonzero(forth > 1) + np.count_nonzero(back > 1))
+    # lo * n + lo = lo * (n + 1); lo * n + hi with lo < hi leaves hi - lo, in 1 .. n - 1
+    loop = (key[start] >> 1) % (n_vertices + 1) == 0
+    missing = np.where(back == 0, forth, 0) + np.where(forth == 0, back, 0)
+    return int(missing[~loop].sum()), nonmanifold
 
 
 def _missing(keys: np.ndarray, sorted_keys: np.ndarray) -> np.ndarray:
@@ -89,7 +105,7 @@ def split_t_junctions(xyz: np.ndarray, tris: np.ndarray, tol: float) -> tuple[np
     if not len(at):
         return tris, 0
     opened = e[at]
-    ends = np.unique(opened)
+    ends = unique_ints(opened)
     tri_of, corner_of = at % len(tris), at // len(tris)  # the triangle and its corner a edge starts at
     splits: dict[int, tuple[int, list[int]]] = {}
     for (a, b), t, j in zip(opened.tolist(), tri_of.tolist(), corner_of.tolist(), strict=True):

@@ -25,6 +25,7 @@ from worker.dst.meshops import (
     repeated_corner,
     signed_volume,
     split_t_junctions,
+    unique_ints,
 )
 from worker.dst.params import SliceParams
 from worker.dst.planes import PlanePlan, plan_planes
@@ -447,7 +448,7 @@ def touching_contour_warning(
     facets of zero area it dropped): edges of four triangles where rings touch."""
     a, b = crowded_edges(triangles, len(vertex_plane))
     ends = np.concatenate([a, b])
-    named = np.unique(vertex_plane[ends][vertex_plane[ends] >= 0])
+    named = unique_ints(vertex_plane[ends][vertex_plane[ends] >= 0])
     shown = ", ".join(f"{planes_z[j]:.4f}" for j in named[:10]) + (", ..." if len(named) > 10 else "")
     return (
         f"at {len(named)} plane(s) (z = {shown} mm) ring vertices lie within the float32 rounding of each "

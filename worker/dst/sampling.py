@@ -37,6 +37,7 @@ from worker.dst.crossings import Crossings
 from worker.dst.errors import TessellationError
 from worker.dst.exact import ExactFailure
 from worker.dst.face_limits import uv_of
+from worker.dst.meshops import unique_ints
 from worker.dst.refine import RunRefiner
 from worker.dst.runs import SUSPECT_DEFLECTIONS, Run
 from worker.dst.sections import SectionTopology
@@ -602,7 +603,7 @@ class RingSampler(Crossings, Traces, RunRefiner):
         so far inside a small curve that their exact points come out of order: ``tessellate``.)"""
         topo = self.topo
         j, cross = topo.loops[li]
-        faces = np.unique(self.mesh.tri_face[topo.seg_tri[cross]])
+        faces = unique_ints(self.mesh.tri_face[topo.seg_tri[cross]])
         if len(faces) != 1 or topo.cross_is_corner[cross].any() or (topo.cross_node[cross] >= 0).any():
             return None
         face = int(faces[0])

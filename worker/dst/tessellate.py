@@ -22,7 +22,7 @@ import numpy as np
 from worker.dst.chords import distances_to_segments
 from worker.dst.cuts import segment_pairs_near, side
 from worker.dst.forked import TaskDied, TaskGroup, idle_cores
-from worker.dst.meshops import repeated_corner
+from worker.dst.meshops import repeated_corner, unique_ints
 from worker.dst.sampling import RingSampler, VertexPool
 from worker.dst.sections import SectionTopology
 
@@ -142,7 +142,7 @@ def _fanned_cap(
         return None
     pieces = np.flatnonzero(topo.piece_comp == cap)
     tri_of = np.searchsorted(topo.piece_off, pieces, side="right") - 1
-    nodes = np.unique(sampler.mesh.tris[tri_of])
+    nodes = unique_ints(sampler.mesh.tris[tri_of])
     slab = j if cap_below else j + 1
     nodes = nodes[topo.slab[nodes] == slab]
     zc = float(topo.planes[j])

@@ -42,7 +42,7 @@ from scipy.spatial import cKDTree
 
 from worker.dst.errors import TessellationError, UnmeshedFaceError
 from worker.dst.exact import EdgeEval, FaceEval
-from worker.dst.meshops import edge_defects, open_edges, repeated_corner, signed_volume
+from worker.dst.meshops import edge_defects, open_edges, repeated_corner, signed_volume, unique_ints
 
 # BRepMesh leaves a face without triangles: closed from its neighbours' nodes if its box diagonal
 # is within this many deflections (any triangle across it is then within the mesh's tolerance).
@@ -225,7 +225,7 @@ def _wedge_poles(tri_uv: np.ndarray, tri_face: np.ndarray, faces: list[FaceEval]
     wrong angle round the apex: bug27453_165-174_piattello turned (-171.8, -177.1, -119.4) at z =
     27.1, a plane 0.01 mm below the apex of a cap, had the 21 crossings of the fan round it on a
     12-degree arc of the section's 0.036 mm circle, and the ring a sliver along that arc."""
-    for f in np.unique(tri_face).tolist():
+    for f in unique_ints(tri_face).tolist():
         fe = faces[f]
         box = (fe.u0, fe.u1, fe.v0, fe.v1)
         sel = None
@@ -357,7 +357,7 @@ def _face_mesh(face: TopoDS_Face, tri, loc: TopLoc_Location) -> FaceMesh:
 def _drop_unused_nodes(xyz: np.ndarray, tris: np.ndarray, glob: np.ndarray):
     """Renumber the nodes still on a triangle (every node of a topology mesh must be); nodes of the
     per-face meshes that lost theirs map to -1. Returns (xyz, tris, glob)."""
-    used = np.unique(tris)
+    used = unique_ints(tris)
     new_id = np.full(len(xyz), -1, dtype=np.int64)
     new_id[used] = np.arange(len(used))
     return xyz[used], new_id[tris], np.where(glob >= 0, new_id[np.maximum(glob, 0)], -1)
@@ -388,7 +388,7 @@ def max_tolerance(shape: TopoDS_Shape, kind=TopAbs_VERTEX) -> float:
 def _merge_open_nodes(xyz: np.ndarray, holes: np.ndarray, tol: float) -> np.ndarray | None:
     """A node map merging the nodes of the open edges ``holes`` that lie within ``tol`` of each other
     (into the lowest id of each group), or None if there are none."""
-    nodes = np.unique(holes)
+    nodes = unique_ints(holes)
     labels, _ = _merge_nodes(xyz[nodes], tol)
     if labels.max() + 1 == len(nodes):
         return None
@@ -587,7 +587,7 @@ def _patch_holes(xyz, tris, tri_uv, tri_face, stray_mask, faces, edge_faces, edg
     """
     unpatched = tris, tri_uv, tri_face, [], 0
     keep = ~stray_mask & ~_doubled_triangles(tris)
-    folded = np.isin(tri_face, np.unique(tri_face[stray_mask]))
+    folded = np.isin(tri_face, unique_ints(tri_face[stray_mask]))
     keep &= ~(_repeated_edge_triangles(tris, len(xyz), keep) & folded)
     if np.count_nonzero(~keep) > min(HOLE_MAX_NODES, 0.1 * len(tris)):
         return unpatched  # not a local defect

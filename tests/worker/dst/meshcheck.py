@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
+from worker.dst.meshops import unique_ints  # np.unique by a sort (numpy 2.3+ hashes: 10-30x slower here)
+
 
 def assert_watertight(mesh) -> trimesh.Trimesh:
     tm = trimesh.Trimesh(mesh.vertices, mesh.triangles, process=False)
@@ -14,15 +16,6 @@ def assert_watertight(mesh) -> trimesh.Trimesh:
     area = tm.area_faces
     assert area.min() > 0, "zero-area triangle"
     return tm
-
-
-def unique_ints(x: np.ndarray) -> np.ndarray:
-    """``np.unique(x)`` of an integer array, by sorting: numpy 2.3+ finds the unique values of an
-    integer array with a hash table, 10-30x slower than a sort on a big mesh's edge keys (2 million
-    distinct of 6 million: 9 s against 0.3 s), which made this helper the slowest part of a big corpus
-    file's test."""
-    s = np.sort(np.ravel(x))
-    return s[np.concatenate([[True], s[1:] != s[:-1]])] if len(s) else s
 
 
 def ring_edges(mesh) -> tuple[np.ndarray, np.ndarray]:
