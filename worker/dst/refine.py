@@ -152,10 +152,14 @@ class RunRefiner(FaceLimits, RunEnds):
         run_plane = np.array([r.plane for r in runs], dtype=np.int64)
         run_traced = np.array([r.traced for r in runs], dtype=bool)
 
-        def solve(run_idx: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        def path_uv(run_idx: np.ndarray, s: np.ndarray) -> np.ndarray:
+            """(n, 2): the seed path's (u, v) at arc length ``s`` of each run."""
             g = s + shift[run_idx]
-            u, v = np.interp(g, big_s, big_u), np.interp(g, big_s, big_v)
-            return self._newton(run_face[run_idx], u, v, run_z[run_idx], run_step[run_idx])
+            return np.column_stack([np.interp(g, big_s, big_u), np.interp(g, big_s, big_v)])
+
+        def solve(run_idx: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            uv = path_uv(run_idx, s)
+            return self._newton(run_face[run_idx], uv[:, 0], uv[:, 1], run_z[run_idx], run_step[run_idx])
 
         # Every point of every run in flat arrays (run, arc length, xyz, vertex id or -1 for a new
         # point); segments to check are pairs of points, refined level by level, all runs together.
@@ -210,8 +214,11 @@ class RunRefiner(FaceLimits, RunEnds):
                     return split
                 mid, mid_ok, mid_uv = solve(ri, 0.5 * (sa + sb))
                 length = np.linalg.norm(pb - pa, axis=1)
+                # where a chord's point is solved again from the chord: the path's (u, v) at its start,
+                # to find that start's (u, v) on the face from (``_chord_end_on``)
+                on = (run_face[ri], run_z[ri], run_step[ri], path_uv(ri, sa))
                 off_path = self._midpoints_off_the_path(
-                    run_face[ri], run_z[ri], run_step[ri], mid, mid_ok, pa, pb, length, run_traced[ri], mid_uv
+                    on, mid, mid_ok, pa, pb, length, run_traced[ri], mid_uv
                 )
                 sag = np.where(mid_ok, point_segment_distance(np.nan_to_num(mid), pa, pb), 0.0)
                 # midpoints placed by their path position in their chord's middle half (not solved
@@ -222,7 +229,7 @@ class RunRefiner(FaceLimits, RunEnds):
                     halvable = ~off_path & ~run_traced[ri] & (t_mid >= 0.25) & (t_mid <= 0.75)
                 quarters, q_ok = self._quarter_sags(
                     solve,
-                    (run_face[ri], run_z[ri], run_step[ri]),
+                    on,
                     sag,
                     mid,
                     mid_ok,
@@ -300,12 +307,7 @@ class RunRefiner(FaceLimits, RunEnds):
                     frac = (k / m[seg])[miss]
                     guess = pa[bq][miss] + frac[:, None] * (pb[bq][miss] - pa[bq][miss])
                     xyz_m, ok_m, uv_m = self._solve_from_chord(
-                        run_face[ri[bq]][miss],
-                        run_z[ri[bq]][miss],
-                        run_step[ri[bq]][miss],
-                        guess,
-                        pa[bq][miss],
-                        pb[bq][miss],
+                        tuple(a[bq][miss] for a in on), guess, pa[bq][miss], pb[bq][miss]
                     )
                     new_xyz[miss[ok_m]], new_uv[miss[ok_m]], new_ok[miss[ok_m]] = (
                         xyz_m[ok_m],
@@ -455,9 +457,7 @@ class RunRefiner(FaceLimits, RunEnds):
         ids = vid.tolist()
         return [ids[bounds[i] : bounds[i + 1]] for i in range(n_runs)]
 
-    def _midpoints_off_the_path(
-        self, face, zc, step, mid, mid_ok, pa, pb, length, traced, mid_uv
-    ) -> np.ndarray:
+    def _midpoints_off_the_path(self, on, mid, mid_ok, pa, pb, length, traced, mid_uv) -> np.ndarray:
         """Solve again (in place, with their face parameters ``mid_uv``) the midpoints that the seed path put off their segment's middle.
 
         A seed path interpolated in (u, v) through a topology triangle with a corner at a pole of
@@ -485,35 +485,39 @@ class RunRefiner(FaceLimits, RunEnds):
             return again
         again[off] = True
         p, ok, uv = self._solve_from_chord(
-            face[off], zc[off], step[off], 0.5 * (pa[off] + pb[off]), pa[off], pb[off]
+            tuple(a[off] for a in on), 0.5 * (pa[off] + pb[off]), pa[off], pb[off]
         )
         mid[off[ok]], mid_ok[off[ok]], mid_uv[off[ok]] = p[ok], True, uv[ok]
         mid_ok[off[~ok & ~long[off]]] = False
         self.stats.unchecked_segments += int((~ok & long[off]).sum())
         return again
 
-    def _solve_from_chord(self, face, zc, step, guess, pa, pb) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _solve_from_chord(self, on, guess, pa, pb) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Section points seeded from points ``guess`` on the chords pa-pb projected on their faces
-        (not from the seed path): (points, mask of those found strictly between their chord's ends,
+        (not from the seed path; ``on``: each chord's face, plane height, Newton step and the seed
+        path's (u, v) at pa): (points, mask of those found strictly between their chord's ends,
         (u, v))."""
+        face, zc, step, at_a = on
         uv = np.array(
             [
-                self.mesh.faces[f].uv_near(tuple(g), self._chord_end_on(f, a), foot=True)
-                for f, g, a in zip(face.tolist(), guess, pa, strict=True)
+                self.mesh.faces[f].uv_near(tuple(g), self._chord_end_on(f, a, seed), foot=True)
+                for f, g, a, seed in zip(face.tolist(), guess, pa, at_a.tolist(), strict=True)
             ]
         ).reshape(-1, 2)
         p, ok, out_uv = self._newton(np.asarray(face), uv[:, 0], uv[:, 1], zc, np.asarray(step))
         t = chord_position(np.nan_to_num(p), pa, pb)
         return p, ok & (t > 0.0) & (t < 1.0), out_uv
 
-    def _chord_end_on(self, f: int, a: np.ndarray) -> tuple[float, float]:
-        """(u, v) of chord end ``a`` on face ``f`` (a global projection: ``uv_near`` seeded at (0,
-        0)), kept per face and point: the same chord ends are solved from again round after round
-        (121,000 distinct ones for 421,000 points of trj7_b1-ec-214's reference)."""
+    def _chord_end_on(self, f: int, a: np.ndarray, seed: Sequence[float]) -> tuple[float, float]:
+        """(u, v) of chord end ``a`` on face ``f``, found from ``seed`` (the seed path's (u, v) where
+        the point was solved from, or for a run's end, where the run starts or ends: Newton gets
+        there in a step or two, where from (0, 0) it mostly failed and OCCT's projection took ~0.5
+        ms a point), kept per face and point: the same chord ends are solved from again round after
+        round (121,000 distinct ones for 421,000 points of trj7_b1-ec-214's reference)."""
         key = (f, a.tobytes())
         uv = self._chord_end_uv.get(key)
         if uv is None:
-            uv = self._chord_end_uv[key] = self.mesh.faces[f].uv_near(tuple(a), (0.0, 0.0))
+            uv = self._chord_end_uv[key] = self.mesh.faces[f].uv_near(tuple(a), (seed[0], seed[1]))
         return uv
 
     def _quarter_sags(
@@ -550,7 +554,7 @@ class RunRefiner(FaceLimits, RunEnds):
         beyond them from the lines through the outer two (a line running into a small fillet at
         the segment's end: trj4_k1_top's 0.027). A quarter point the path puts past the segment's
         ends is solved again from the chord's quarter point projected on the face (``on``: each
-        segment's face, plane height and Newton step), as a midpoint is (``_midpoints_off_the_path``;
+        segment's face, plane height, Newton step and the seed path's (u, v) at its start), as a midpoint is (``_midpoints_off_the_path``;
         trj6_k1-al-214 turned (112.9, 27.5, -64.7) at z = 44.5: both of a 0.167 mm segment's quarter
         points landed past its ends round a 0.5 mm loop, its midpoint 0.024 mm from the chord, and
         it passed with the curve 0.028 mm from it). Where one quarter point is still lost, the
@@ -585,8 +589,7 @@ class RunRefiner(FaceLimits, RunEnds):
         if (lost := np.flatnonzero(~ok)).size:
             qq = q[lost]
             guess = pa[qq] + frac[lost, None] * (pb[qq] - pa[qq])
-            face, zc, step = (a[qq] for a in on)
-            p2, ok2, _ = self._solve_from_chord(face, zc, step, guess, pa[qq], pb[qq])
+            p2, ok2, _ = self._solve_from_chord(tuple(a[qq] for a in on), guess, pa[qq], pb[qq])
             found = lost[ok2]
             pts[found], t_q[found], ok[found] = (
                 p2[ok2],
@@ -649,9 +652,8 @@ class RunRefiner(FaceLimits, RunEnds):
         seg, g = ci[rows], g[rows]
         t_lo, t_hi = filled[rows, g], filled[rows, g + 1]
         t_new = 0.5 * (t_lo + t_hi)
-        face, zc, step = (a[seg] for a in on)
         guess = pa[seg] + t_new[:, None] * (pb[seg] - pa[seg])
-        p, found, _ = self._solve_from_chord(face, zc, step, guess, pa[seg], pb[seg])
+        p, found, _ = self._solve_from_chord(tuple(a[seg] for a in on), guess, pa[seg], pb[seg])
         p = np.nan_to_num(p)
         d = point_segment_distance(p, pa[seg], pb[seg])
         found &= d <= 0.5 * length[seg]

@@ -90,9 +90,9 @@ def test_midpoints_the_seed_path_left_off_their_segment_are_solved_from_the_chor
     before = sampler.stats.unchecked_segments
     mid_uv = np.full((len(cases), 2), -7.0)
     sampler._midpoints_off_the_path(
-        face,
-        np.full(len(cases), Z),
-        np.full(len(cases), 1.0),
+        # face, plane height, Newton step, and a seed path's (u, v) at the chord's start (none here:
+        # the start's (u, v) found from (0, 0))
+        (face, np.full(len(cases), Z), np.full(len(cases), 1.0), np.zeros((len(cases), 2))),
         mid,
         mid_ok,
         seg_a,
