@@ -438,7 +438,7 @@ class RunRefiner(FaceLimits, RunEnds):
         ri, xyz, vid, uv = self._trim_borders(ri, xyz, vid, uv, run_face, run_z, run_step)
         keep = vid != -2
         dropped_before = np.cumsum(~keep)[keep]
-        ri, xyz, vid = ri[keep], xyz[keep], vid[keep]
+        ri, xyz, vid, uv = ri[keep], xyz[keep], vid[keep], uv[keep]
         if not keep.all():
             # a segment that now spans dropped points may exceed the budget: no exact point of this
             # face lies there, so it is a gap of the B-rep (reported with the others; segments kept
@@ -449,7 +449,9 @@ class RunRefiner(FaceLimits, RunEnds):
         new = np.flatnonzero(vid < 0)
         gap_pt = new[vid[new] == GAP_POINT]
         bridge_pt = new[vid[new] == BRIDGE_POINT]
-        vid[new] = self.pool.extend(xyz[new, :2], run_z[ri[new]], run_plane[ri[new]])
+        vid[new] = self.pool.extend(
+            xyz[new, :2], run_z[ri[new]], run_plane[ri[new]], run_face[ri[new]], uv[new]
+        )
         # where the curve meets the jump from a run's end vertex off it (the ring turns there)
         self.gap_vids.update(vid[gap_pt].tolist())
         self.bridge_vids.update(vid[bridge_pt].tolist())

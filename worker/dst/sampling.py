@@ -48,12 +48,15 @@ from worker.dst.traces import EXCURSION_MAX_TRACE_MM, Traces
 class VertexPool:
     """Output vertices in world millimetres; ``plane`` is the plane index of ring vertices, else -1.
 
-    A growable numpy buffer: ``xyz`` and ``plane`` are views of the vertices added so far.
+    A growable numpy buffer: ``xyz`` and ``plane`` are views of the vertices added so far. A vertex
+    solved on a face keeps that face and its (u, v) there (``uv_on``), where it was given.
     """
 
     def __init__(self, capacity: int = 4096):
         self._xyz = np.empty((capacity, 3), dtype=np.float64)
         self._plane = np.empty(capacity, dtype=np.int64)
+        self._face = np.empty(capacity, dtype=np.int64)
+        self._uv = np.empty((capacity, 2), dtype=np.float64)
         self.n = 0
 
     @property
@@ -73,24 +76,46 @@ class VertexPool:
             cap = max(need, 2 * len(self._plane))
             self._xyz = np.concatenate([self._xyz[: self.n], np.empty((cap - self.n, 3))])
             self._plane = np.concatenate([self._plane[: self.n], np.empty(cap - self.n, dtype=np.int64)])
+            self._face = np.concatenate([self._face[: self.n], np.empty(cap - self.n, dtype=np.int64)])
+            self._uv = np.concatenate([self._uv[: self.n], np.empty((cap - self.n, 2))])
 
     def add(self, p: tuple[float, float, float], plane: int) -> int:
         self._reserve(1)
         self._xyz[self.n] = p
         self._plane[self.n] = plane
+        self._face[self.n] = -1
         self.n += 1
         return self.n - 1
 
-    def extend(self, xy: np.ndarray, z: np.ndarray, plane: np.ndarray) -> np.ndarray:
-        """Add ring vertices (x, y) at heights ``z`` on planes ``plane``; returns their ids."""
+    def extend(
+        self,
+        xy: np.ndarray,
+        z: np.ndarray,
+        plane: np.ndarray,
+        face: np.ndarray | None = None,
+        uv: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """Add ring vertices (x, y) at heights ``z`` on planes ``plane``; returns their ids. ``face``
+        and ``uv``: the face each was solved on and its (u, v) there (NaN: not known)."""
         k = len(xy)
         self._reserve(k)
         n0 = self.n
         self._xyz[n0 : n0 + k, :2] = xy
         self._xyz[n0 : n0 + k, 2] = z
         self._plane[n0 : n0 + k] = plane
+        if face is None or uv is None:
+            self._face[n0 : n0 + k] = -1
+        else:
+            self._face[n0 : n0 + k] = np.where(np.isnan(uv).any(axis=1), -1, face)
+            self._uv[n0 : n0 + k] = uv
         self.n += k
         return np.arange(n0, self.n, dtype=np.int64)
+
+    def uv_on(self, face: int, v: int) -> tuple[float, float] | None:
+        """Vertex ``v``'s (u, v) on ``face``, where it was solved there (else None)."""
+        if v >= self.n or self._face[v] != face:
+            return None
+        return float(self._uv[v, 0]), float(self._uv[v, 1])
 
 
 @dataclass
