@@ -159,14 +159,20 @@ class Traces:
         key = (face, v)
         known = self._trim_memo.get(key)
         if known is None:
-            ev = self.mesh.faces[face]
-            xyz = self.pool.xyz[v]
-            # from the (u, v) the vertex was solved at on this face, where it was (a global projection
-            # from (0, 0) otherwise: mostly OCCT's, ~0.3 ms; 28 s of trj3_s1-al's 70 s reference)
-            seed = self.pool.uv_on(face, v)
-            uv = uv_of(ev, xyz) if seed is None else ev.uv_near(tuple(map(float, xyz)), seed)
-            known = self._trim_memo[key] = ev.contains(*uv, tol=TRIM_TOL_MM)
+            known = self._trim_memo[key] = self.mesh.faces[face].contains(
+                *self._uv_at(face, v), tol=TRIM_TOL_MM
+            )
         return known
+
+    def _uv_at(self, face: int, v: int) -> tuple[float, float]:
+        """(u, v) of pool vertex ``v`` on ``face``'s surface: projected from the (u, v) it was solved
+        at on that face, where it was, else from (0, 0) (``uv_of``: mostly OCCT's projection, ~0.3 ms
+        a point; 28 s of trj3_s1-al's 70 s reference went to the trim checks' alone)."""
+        ev = self.mesh.faces[face]
+        seed = self.pool.uv_on(face, v)
+        if seed is None:
+            return uv_of(ev, self.pool.xyz[v])
+        return ev.uv_near(tuple(map(float, self.pool.xyz[v])), seed)
 
     def _without_spurs(self, ring: list[int], face_of: dict[int, int]) -> list[int]:
         """``ring`` without the tips of its spurs onto a face's extension, tip after tip: vertices
@@ -238,7 +244,7 @@ class Traces:
                 face = face_of.get(ring[k])
                 if face is None or k in suspects:
                     continue
-                direction = faces[face].section_direction(*uv_of(faces[face], xyz[v]))
+                direction = faces[face].section_direction(*self._uv_at(face, v))
                 if direction is not None and np.dot(direction, unit[k]) < EXCURSION_TANGENT_COS:
                     suspects.add(k)
         return sorted(suspects)
@@ -435,8 +441,8 @@ class Traces:
         4.6 mm apart): a failure too."""
         xyz = self.pool.xyz
         ev = self.mesh.faces[face]
-        uv_a = uv_of(ev, xyz[a])
-        b_direction = ev.section_direction(*uv_of(ev, xyz[b]))
+        uv_a = self._uv_at(face, a)
+        b_direction = ev.section_direction(*self._uv_at(face, b))
         if b_direction is None:
             self.stats.excursion_failures += 1
             return None
