@@ -812,3 +812,57 @@ def test_surface_points_are_the_same_whether_a_batch_or_occt_evaluates_them(tmp_
                 want = np.array(p.Coord() + du.Coord() + dv.Coord())
                 cols = 9 if derivatives else 3
                 np.testing.assert_allclose(row[:cols], want[:cols], rtol=0, atol=1e-9)
+
+
+def test_a_vertex_solved_on_a_face_keeps_its_parameters_there_and_is_projected_from_them(
+    cone_sampler, monkeypatch
+):
+    """The vertex pool keeps the face and (u, v) each sampled vertex was solved at, and the trim and
+    excursion checks start from them (``Traces._uv_at``) instead of a projection seeded at (0, 0),
+    which mostly fell to OCCT's global projection (~0.3 ms a point: 28 s of trj3_s1-al's 70 s
+    reference). A vertex added without them (a crossing, a node) has none, and is projected as before."""
+    import worker.dst.traces as traces_mod
+
+    base, cone, plane = cone_sampler
+    sampler = RingSampler(base.mesh, base.topo, VertexPool(), segment_length=1.0, chord_error=0.01)
+    (ring,) = sampler.free_loops([0]).values()
+    pool = sampler.pool
+    solved = [v for v in ring if pool.uv_on(cone, v) is not None]
+    assert len(solved) > 0.8 * len(ring)  # all but the loop's crossings
+    surface = sampler.mesh.faces[cone]
+    for v in solved:
+        assert pool.uv_on(plane, v) is None  # only on the face it was solved on
+        # where the cone's surface passes through the vertex (Newton's |z - plane| tolerance)
+        assert (
+            np.linalg.norm(np.array(surface.point(*pool.uv_on(cone, v))) - pool.xyz[v]) < 2 * C.LEVEL_TOL_MM
+        )
+
+    def global_projection(*args):
+        raise AssertionError("a vertex solved on the face was projected from (0, 0)")
+
+    monkeypatch.setattr(traces_mod, "uv_of", global_projection)
+    for v in solved:
+        u, w = sampler._uv_at(cone, v)
+        assert np.linalg.norm(np.array(surface.point(u, w)) - pool.xyz[v]) < 2 * C.LEVEL_TOL_MM
+    crossings = [v for v in ring if pool.uv_on(cone, v) is None]
+    assert crossings and all(pool._face[v] == -1 for v in crossings)
+
+
+def test_the_vertex_pool_keeps_faces_and_parameters_as_it_grows():
+    pool = VertexPool(capacity=2)
+    a = pool.add((0.0, 0.0, 1.0), 0)
+    ids = pool.extend(
+        np.array([[1.0, 0.0], [2.0, 0.0], [3.0, 0.0]]),
+        np.full(3, 1.0),
+        np.zeros(3, dtype=np.int64),
+        np.array([4, 5, 4]),
+        np.array([[0.1, 0.2], [np.nan, np.nan], [0.5, 0.6]]),
+    )
+    b = pool.extend(np.array([[4.0, 0.0]]), np.ones(1), np.zeros(1, dtype=np.int64))[0]
+    assert len(pool) == 5 and ids.tolist() == [1, 2, 3]
+    assert pool.uv_on(4, 1) == (0.1, 0.2) and pool.uv_on(4, 3) == (0.5, 0.6)
+    assert pool.uv_on(5, 1) is None  # another face
+    assert pool.uv_on(5, 2) is None  # (u, v) not known
+    assert pool.uv_on(4, a) is None and pool.uv_on(4, b) is None  # added without them
+    assert pool.uv_on(4, 7) is None  # no such vertex
+    assert np.array_equal(pool.xyz[:, 0], [0, 1, 2, 3, 4])
