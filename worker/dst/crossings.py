@@ -46,11 +46,17 @@ class Crossings:
             vid = self.node(node)
         else:
             j = int(topo.cross_plane[c])
-            vid = self.pool.add(self._solve_crossing(c, float(topo.planes[j])), j)
+            xyz, on = self._solve_crossing(c, float(topo.planes[j]))
+            vid = self.pool.add(xyz, j, on)
         self.cross_vid[c] = vid
         return vid
 
-    def _solve_crossing(self, c: int, zc: float) -> tuple[float, float, float]:
+    def _solve_crossing(
+        self, c: int, zc: float
+    ) -> tuple[tuple[float, float, float], tuple[int, float, float] | None]:
+        """The exact point of crossing ``c`` at height ``zc``, and where it is the root found on a
+        face: (that face, its (u, v) there), else None (a root on a B-rep edge, a walked or a
+        fallback point)."""
         topo, mesh = self.topo, self.mesh
         e = int(topo.cross_edge[c])
         a, b = (int(x) for x in topo.edges[e])
@@ -58,7 +64,7 @@ class Crossings:
         if brep_edge is not None:
             try:
                 self.stats.edge_roots += 1
-                return self._root_on_brep_edge(brep_edge, a, b, zc)
+                return self._root_on_brep_edge(brep_edge, a, b, zc), None
             except ExactFailure:
                 self.stats.fallbacks += 1
         t = int(topo.edge_tris[e, 0])
@@ -89,6 +95,8 @@ class Crossings:
                     x, y = walked
                     self.off_trim.discard(c)
                     self.stats.reordered_crossings += 1
+                    return (x, y, zc), None
+            return (x, y, zc), (face, ur, vr)
         except ExactFailure:
             # The surface at a node's (u, v) can differ from the node (an edge point) by the file's
             # tolerance, so a plane that close to a node is not bracketed: Newton from the seed.
@@ -99,7 +107,7 @@ class Crossings:
                     f"no exact point of face {face + 1} at z={zc:.4f} mm near a topology edge"
                 ) from None
             x, y, _ = p
-        return x, y, zc
+        return (x, y, zc), None
 
     def _reordered(
         self, c: int, face: int, ur: float, vr: float, zc: float, near: np.ndarray, d_root: float

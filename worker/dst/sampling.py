@@ -79,11 +79,16 @@ class VertexPool:
             self._face = np.concatenate([self._face[: self.n], np.empty(cap - self.n, dtype=np.int64)])
             self._uv = np.concatenate([self._uv[: self.n], np.empty((cap - self.n, 2))])
 
-    def add(self, p: tuple[float, float, float], plane: int) -> int:
+    def add(
+        self, p: tuple[float, float, float], plane: int, on: tuple[int, float, float] | None = None
+    ) -> int:
+        """Add a vertex; ``on``: the face it was solved on and its (u, v) there, where known."""
         self._reserve(1)
         self._xyz[self.n] = p
         self._plane[self.n] = plane
-        self._face[self.n] = -1
+        self._face[self.n] = -1 if on is None else on[0]
+        if on is not None:
+            self._uv[self.n] = on[1:]
         self.n += 1
         return self.n - 1
 
