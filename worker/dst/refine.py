@@ -556,12 +556,13 @@ class RunRefiner(FaceLimits, RunEnds):
         beyond them from the lines through the outer two (a line running into a small fillet at
         the segment's end: trj4_k1_top's 0.027). A quarter point the path puts past the segment's
         ends is solved again from the chord's quarter point projected on the face (``on``: each
-        segment's face, plane height, Newton step and the seed path's (u, v) at its start), as a midpoint is (``_midpoints_off_the_path``;
-        trj6_k1-al-214 turned (112.9, 27.5, -64.7) at z = 44.5: both of a 0.167 mm segment's quarter
-        points landed past its ends round a 0.5 mm loop, its midpoint 0.024 mm from the chord, and
-        it passed with the curve 0.028 mm from it). Where one quarter point is still lost, the
-        midpoint and the other give the peak (``zero_end_peak``). The quarter points solved again
-        serve the peak only (``q_ok`` false: not a half's midpoint for ``_halves``).
+        segment's face, plane height, Newton step and the seed path's (u, v) at its start), as a
+        midpoint is (``_midpoints_off_the_path``; trj6_k1-al-214 turned (112.9, 27.5, -64.7) at z
+        = 44.5: both of a 0.167 mm segment's quarter points landed past its ends round a 0.5 mm
+        loop, its midpoint 0.024 mm from the chord, and it passed with the curve 0.028 mm from it).
+        Where one quarter point is still lost, the midpoint and the other give the peak
+        (``zero_end_peak``). The quarter points solved again serve the peak only (``q_ok`` false:
+        not a half's midpoint for ``_halves``).
         """
         ri, sa, sb, pa, pb = pending
         e = self.chord
