@@ -116,6 +116,16 @@ class VertexPool:
         self.n += k
         return np.arange(n0, self.n, dtype=np.int64)
 
+    @property
+    def faces(self) -> np.ndarray:
+        """(n,): the face each vertex was solved on, -1 where none is known."""
+        return self._face[: self.n]
+
+    @property
+    def uvs(self) -> np.ndarray:
+        """(n, 2): each vertex's (u, v) on ``faces`` (meaningless where that is -1)."""
+        return self._uv[: self.n]
+
     def uv_on(self, face: int, v: int) -> tuple[float, float] | None:
         """Vertex ``v``'s (u, v) on ``face``, where it was solved there (else None)."""
         if v >= self.n or self._face[v] != face:
@@ -190,6 +200,8 @@ class SampledShare:
     rings: dict[int, list[int]]
     xyz: np.ndarray  # (n, 3) every vertex the share's sampler added, in order
     plane: np.ndarray  # (n,)
+    face: np.ndarray  # (n,) the face each was solved on (-1: none known), and its (u, v) there
+    uv: np.ndarray  # (n, 2)
     stats: SamplingStats
     gaps: list[tuple]
     unresolved: list[tuple[int, float]]
@@ -307,6 +319,8 @@ class RingSampler(Crossings, Traces, RunRefiner):
             rings=rings,
             xyz=other.pool.xyz.copy(),
             plane=other.pool.plane.copy(),
+            face=other.pool.faces.copy(),
+            uv=other.pool.uvs.copy(),
             stats=other.stats,
             gaps=other._gaps,
             unresolved=other.unresolved,
@@ -327,7 +341,14 @@ class RingSampler(Crossings, Traces, RunRefiner):
             if own is not None:
                 vid[v] = own
         new = np.flatnonzero(vid < 0)
-        vid[new] = self.pool.extend(share.xyz[new, :2], share.xyz[new, 2], share.plane[new])
+        known = share.face[new] >= 0
+        vid[new] = self.pool.extend(
+            share.xyz[new, :2],
+            share.xyz[new, 2],
+            share.plane[new],
+            share.face[new],
+            np.where(known[:, None], share.uv[new], np.nan),
+        )
         for n, v in share.node_vid.items():
             self.node_vid.setdefault(n, int(vid[v]))
         for c, v in share.cross_vid.items():

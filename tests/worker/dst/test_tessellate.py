@@ -105,7 +105,8 @@ def test_a_helper_that_dies_has_its_share_sampled_here(hemisphere_step, monkeypa
 
 def test_adopt_keeps_this_samplers_vertex_of_a_node_both_placed(hemisphere_step, monkeypatch):
     """A share's node vertex that this sampler has already is not added again (the mesh stays joined
-    there); every other vertex is appended, with its crossings, marks, gaps and counts."""
+    there); every other vertex is appended, with its crossings, marks, gaps and counts, and the face
+    and (u, v) it was solved at."""
     captured = []
     original = T.free_rings
 
@@ -126,6 +127,8 @@ def test_adopt_keeps_this_samplers_vertex_of_a_node_both_placed(hemisphere_step,
         rings={7: [0, 1, 2]},
         xyz=np.array([[*mesh.xyz[node][:2], topo.z[node]], [1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]),
         plane=np.array([topo.node_plane[node], 5, 5]),
+        face=np.array([-1, 3, -1]),
+        uv=np.array([[0.0, 0.0], [0.25, 0.5], [9.0, 9.0]]),
         stats=SamplingStats(newton_solves=3),
         gaps=[gap],
         unresolved=[(5, 0.003)],
@@ -139,6 +142,8 @@ def test_adopt_keeps_this_samplers_vertex_of_a_node_both_placed(hemisphere_step,
     assert len(main.pool) == before + 2
     np.testing.assert_array_equal(main.pool.xyz[before:], share.xyz[1:])
     np.testing.assert_array_equal(main.pool.plane[before:], [5, 5])
+    # the face and (u, v) a vertex was solved at come along; none where the share had none
+    assert main.pool.uv_on(3, before) == (0.25, 0.5) and main.pool.uv_on(3, before + 1) is None
     assert main.cross_vid[11] == before and main.cross_vid[12] == before + 1
     assert main.node_vid[node] == own
     assert before in main.corner_vids and before + 1 in main.gap_vids
