@@ -101,7 +101,8 @@ class VertexPool:
         uv: np.ndarray | None = None,
     ) -> np.ndarray:
         """Add ring vertices (x, y) at heights ``z`` on planes ``plane``; returns their ids. ``face``
-        and ``uv``: the face each was solved on and its (u, v) there (NaN: not known)."""
+        and ``uv``: the face each was solved on and its (u, v) there (face -1 or (u, v) NaN: not
+        known)."""
         k = len(xy)
         self._reserve(k)
         n0 = self.n
@@ -341,13 +342,8 @@ class RingSampler(Crossings, Traces, RunRefiner):
             if own is not None:
                 vid[v] = own
         new = np.flatnonzero(vid < 0)
-        known = share.face[new] >= 0
         vid[new] = self.pool.extend(
-            share.xyz[new, :2],
-            share.xyz[new, 2],
-            share.plane[new],
-            share.face[new],
-            np.where(known[:, None], share.uv[new], np.nan),
+            share.xyz[new, :2], share.xyz[new, 2], share.plane[new], share.face[new], share.uv[new]
         )
         for n, v in share.node_vid.items():
             self.node_vid.setdefault(n, int(vid[v]))
