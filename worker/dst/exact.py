@@ -133,6 +133,11 @@ class FaceEval:
         uv = self._newton_uv(xyz, seed, foot)
         if uv is not None:
             return self.same_branch(uv, seed)
+        return self.project(xyz, seed)
+
+    def project(self, xyz: tuple[float, float, float], seed: tuple[float, float]) -> tuple[float, float]:
+        """(u, v) of the point's projection on the surface (``NextValueOfUV`` from ``seed``), on the
+        parameter branch nearest the seed: ``uv_near``'s way where Newton does not get there."""
         if self._sas is None:
             self._sas = ShapeAnalysis_Surface(BRep_Tool.Surface_s(self.face))
         p = self._sas.NextValueOfUV(

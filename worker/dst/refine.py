@@ -46,6 +46,7 @@ from worker.dst.constants import (
     SEGMENT_FILL,
 )
 from worker.dst.errors import TessellationError
+from worker.dst.exact import SETTLED_GAP_MM, SETTLED_STEP_REL, UV_NEAR_MAX_ITER, UV_NEAR_TOL_MM
 from worker.dst.face_limits import FaceLimits
 from worker.dst.run_ends import RunEnds
 from worker.dst.runs import BRIDGE_POINT, GAP_POINT, GAP_SPAN_REL, Run
@@ -215,7 +216,7 @@ class RunRefiner(FaceLimits, RunEnds):
                 mid, mid_ok, mid_uv = solve(ri, 0.5 * (sa + sb))
                 length = np.linalg.norm(pb - pa, axis=1)
                 # where a chord's point is solved again from the chord: the path's (u, v) at its start,
-                # to find that start's (u, v) on the face from (``_chord_end_on``)
+                # to find that start's (u, v) on the face from (``_chord_ends_on``)
                 on = (run_face[ri], run_z[ri], run_step[ri], path_uv(ri, sa))
                 off_path = self._midpoints_off_the_path(
                     on, mid, mid_ok, pa, pb, length, run_traced[ri], mid_uv
@@ -500,27 +501,105 @@ class RunRefiner(FaceLimits, RunEnds):
         path's (u, v) at pa): (points, mask of those found strictly between their chord's ends,
         (u, v))."""
         face, zc, step, at_a = on
-        uv = np.array(
-            [
-                self.mesh.faces[f].uv_near(tuple(g), self._chord_end_on(f, a, seed), foot=True)
-                for f, g, a, seed in zip(face.tolist(), guess, pa, at_a.tolist(), strict=True)
-            ]
-        ).reshape(-1, 2)
-        p, ok, out_uv = self._newton(np.asarray(face), uv[:, 0], uv[:, 1], zc, np.asarray(step))
+        face = np.asarray(face, dtype=np.int64)
+        seeds = self._chord_ends_on(face, pa, np.asarray(at_a, dtype=np.float64).reshape(-1, 2))
+        uv = self._uv_near(face, np.asarray(guess, dtype=np.float64).reshape(-1, 3), seeds, foot=True)
+        p, ok, out_uv = self._newton(face, uv[:, 0], uv[:, 1], zc, np.asarray(step))
         t = chord_position(np.nan_to_num(p), pa, pb)
         return p, ok & (t > 0.0) & (t < 1.0), out_uv
 
-    def _chord_end_on(self, f: int, a: np.ndarray, seed: Sequence[float]) -> tuple[float, float]:
-        """(u, v) of chord end ``a`` on face ``f``, found from ``seed`` (the seed path's (u, v) where
-        the point was solved from, or for a run's end, where the run starts or ends: Newton gets
-        there in a step or two, where from (0, 0) it mostly failed and OCCT's projection took ~0.5
-        ms a point), kept per face and point: the same chord ends are solved from again round after
-        round (121,000 distinct ones for 421,000 points of trj7_b1-ec-214's reference)."""
-        key = (f, a.tobytes())
-        uv = self._chord_end_uv.get(key)
-        if uv is None:
-            uv = self._chord_end_uv[key] = self.mesh.faces[f].uv_near(tuple(a), (seed[0], seed[1]))
-        return uv
+    def _uv_near(
+        self, face: np.ndarray, xyz: np.ndarray, seed: np.ndarray, *, foot: bool = False
+    ) -> np.ndarray:
+        """``FaceEval.uv_near`` of many points at once ((n, 2) (u, v) of ``xyz`` (n, 3) on faces
+        ``face``, from ``seed`` (n, 2)): its Gauss-Newton on the distance batched (``_d1``: a few
+        numpy calls a step instead of OCCT's D1 and a dozen Python lines a point and step), with
+        the same steps, stops and box check; the points it does not place are projected one by
+        one (``FaceEval.project``), as ``uv_near`` projects them."""
+        n = len(face)
+        u, v = seed[:, 0].astype(np.float64), seed[:, 1].astype(np.float64)
+        there = np.full((n, 3), np.nan)  # (u, v, squared gap) within the tolerance, or the settled foot
+        has = np.zeros(n, dtype=bool)
+        act = np.arange(n)
+        p, du, dv = gp_Pnt(), gp_Vec(), gp_Vec()
+        for _ in range(UV_NEAR_MAX_ITER):
+            if not act.size:
+                break
+            res = self._d1(face[act], u[act], v[act], self._ads, p, du, dv)
+            r = xyz[act] - res[:, :3]
+            gap2 = np.einsum("ij,ij->i", r, r)
+            # within the tolerance at the last step: this step's point where it is closer, and done
+            last = has[act]
+            closer = last & (gap2 < there[act, 2])
+            i = act[closer]
+            there[i] = np.column_stack([u[i], v[i], gap2[closer]])
+            go = ~last
+            act, res, r, gap2 = act[go], res[go], r[go], gap2[go]
+            within = gap2 <= UV_NEAR_TOL_MM * UV_NEAR_TOL_MM
+            i = act[within]
+            there[i] = np.column_stack([u[i], v[i], gap2[within]])
+            has[i] = True
+            su_, sv_ = res[:, 3:6], res[:, 6:9]
+            a11 = np.einsum("ij,ij->i", su_, su_)
+            a12 = np.einsum("ij,ij->i", su_, sv_)
+            a22 = np.einsum("ij,ij->i", sv_, sv_)
+            det = a11 * a22 - a12 * a12
+            ok = det > 1e-12 * a11 * a22  # else (also NaN) a pole, or tangents nearly parallel: stop
+            act, r, gap2, within = act[ok], r[ok], gap2[ok], within[ok]
+            su_, sv_, a11, a12, a22, det = su_[ok], sv_[ok], a11[ok], a12[ok], a22[ok], det[ok]
+            b1, b2 = np.einsum("ij,ij->i", su_, r), np.einsum("ij,ij->i", sv_, r)
+            su, sv = (a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det
+            # settled at the foot of a point off the surface (see ``FaceEval._newton_uv``): the
+            # foot, or (not ``foot``) no answer from Newton; either way no more steps
+            step2 = su * su * a11 + 2.0 * su * sv * a12 + sv * sv * a22
+            settled = (
+                ~within
+                & (gap2 > SETTLED_GAP_MM * SETTLED_GAP_MM)
+                & (step2 < SETTLED_STEP_REL * SETTLED_STEP_REL * gap2)
+            )
+            if foot:
+                i = act[settled]
+                there[i] = np.column_stack([u[i] + su[settled], v[i] + sv[settled], gap2[settled]])
+                has[i] = True
+            go = ~settled
+            act = act[go]
+            u[act] += su[go]
+            v[act] += sv[go]
+        # a point beyond the (u, v) box in a direction that does not wrap is not taken from Newton
+        box, period = self._uv_box[face], self._period[face]
+        for axis in (0, 1):
+            lo, hi = box[:, 2 * axis], box[:, 2 * axis + 1]
+            margin = 1e-9 * np.maximum(hi - lo, 1.0)
+            w = there[:, axis]
+            has &= (period[:, axis] > 0) | ((lo - margin <= w) & (w <= hi + margin))
+        out = np.empty((n, 2))
+        # on the branch nearest the seed (``FaceEval.same_branch``)
+        shift = np.where(period > 0, np.round((seed - there[:, :2]) / np.where(period > 0, period, 1.0)), 0.0)
+        out[has] = (there[:, :2] + shift * period)[has]
+        for k in np.flatnonzero(~has).tolist():
+            out[k] = self.mesh.faces[int(face[k])].project(tuple(xyz[k].tolist()), tuple(seed[k].tolist()))
+        return out
+
+    def _chord_ends_on(self, face: np.ndarray, a: np.ndarray, seed: np.ndarray) -> np.ndarray:
+        """(n, 2): the (u, v) of chord ends ``a`` (n, 3) on faces ``face``, found from ``seed`` (the
+        seed path's (u, v) where each point was solved from, or for a run's end, where the run
+        starts or ends: Newton gets there in a step or two, where from (0, 0) it mostly failed and
+        OCCT's projection took ~0.5 ms a point), kept per face and point: the same chord ends are
+        solved from again round after round (121,000 distinct ones for 421,000 points of
+        trj7_b1-ec-214's reference). Those not kept yet are placed together (``_uv_near``), each
+        from the seed of its first appearance."""
+        known = self._chord_end_uv
+        a = np.ascontiguousarray(a, dtype=np.float64)
+        keys = list(zip(face.tolist(), (row.tobytes() for row in a), strict=True))
+        new: dict[tuple[int, bytes], int] = {}
+        for k, key in enumerate(keys):
+            if key not in known:
+                new.setdefault(key, k)
+        if new:
+            at = np.fromiter(new.values(), dtype=np.int64, count=len(new))
+            uv = self._uv_near(face[at], a[at], seed[at])
+            known.update(zip(new, map(tuple, uv.tolist()), strict=True))
+        return np.array([known[key] for key in keys], dtype=np.float64).reshape(-1, 2)
 
     def _quarter_sags(
         self,

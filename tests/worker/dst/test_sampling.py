@@ -865,3 +865,57 @@ def test_the_vertex_pool_keeps_faces_and_parameters_as_it_grows():
     assert pool.uv_on(4, a) is None and pool.uv_on(4, b) is None  # added without them
     assert pool.uv_on(4, 7) is None  # no such vertex
     assert np.array_equal(pool.xyz[:, 0], [0, 1, 2, 3, 4])
+
+
+@pytest.mark.parametrize(
+    "kind, nurbs", [("hemisphere", True), ("hemisphere", False), ("torus", False), ("tube", False)]
+)
+def test_many_points_placed_on_their_faces_at_once_land_where_each_alone_does(tmp_path, kind, nurbs):
+    """``RunRefiner._uv_near`` batches ``FaceEval.uv_near``'s Gauss-Newton over many points of mixed
+    faces (a B-spline hemisphere and its flat bottom, an analytic sphere with its pole, a torus
+    periodic both ways, a tilted tube's cylinders and planar ends): each point lands where
+    ``uv_near`` puts it alone, on the seed's branch of a periodic surface: points on the surface,
+    feet of points off it (``foot``), and where Newton gets nowhere (the seed far off, a point past
+    the face's box) OCCT's projection as before."""
+    from tests.conftest import build_part, write_step
+
+    mesh = _topomesh_of(write_step(build_part(kind), tmp_path / "p.step", nurbs=nurbs))
+    topo = cut_topology(mesh, np.array([1.0]), on_plane_tol=C.ON_PLANE_TOL_MM, noise_tol=np.zeros(1))
+    s = RingSampler(mesh, topo, VertexPool(), segment_length=1.0, chord_error=0.01)
+    rng = np.random.default_rng(11)
+    rows = []  # face, xyz, seed, how far off the surface
+    for f, fe in enumerate(mesh.faces):
+        box = np.array([[fe.u0, fe.u1], [fe.v0, fe.v1]])
+        span = box[:, 1] - box[:, 0]
+        for _ in range(40):
+            uv = box[:, 0] + span * rng.uniform(0.05, 0.95, 2)
+            p, du, dv = np.array(fe.point(*uv)), *(np.zeros(3) for _ in range(2))
+            eps = 1e-6 * span
+            du = (np.array(fe.point(uv[0] + eps[0], uv[1])) - p) / eps[0]
+            dv = (np.array(fe.point(uv[0], uv[1] + eps[1])) - p) / eps[1]
+            normal = np.cross(du, dv)
+            normal /= np.linalg.norm(normal)
+            off = float(rng.choice([0.0, 0.0, 1e-5, 0.003, 0.03, 2.0]))
+            near = rng.uniform(-0.03, 0.03, 2) * span  # a seed near the point, or far off
+            seed = uv + (near if rng.uniform() < 0.8 else rng.uniform(-0.5, 0.5, 2) * span)
+            for axis in (0, 1):  # on another period than the point's
+                if fe.period(axis) and rng.uniform() < 0.3:
+                    seed[axis] += fe.period(axis) * rng.choice([-1, 1])
+            rows.append((f, p + off * normal, seed, off))
+    order = rng.permutation(len(rows))
+    face = np.array([rows[k][0] for k in order])
+    xyz = np.array([rows[k][1] for k in order])
+    seed = np.array([rows[k][2] for k in order])
+    off = np.array([rows[k][3] for k in order])
+    for foot in (False, True):
+        got = s._uv_near(face, xyz, seed, foot=foot)
+        for k, f in enumerate(face.tolist()):
+            fe = mesh.faces[f]
+            want = fe.uv_near(tuple(xyz[k]), tuple(seed[k]), foot=foot)
+            gap = np.linalg.norm(np.array(fe.point(*got[k])) - fe.point(*want))
+            # a foot settles once a step moves less than SETTLED_STEP_REL of the gap: a step's
+            # difference apart at most
+            assert gap <= (2e-3 * off[k] if foot else 0.0) + 1e-8, (f, xyz[k], seed[k], got[k], want)
+            for axis in (0, 1):  # on the seed's branch, as uv_near's
+                if fe.period(axis):
+                    assert abs(got[k, axis] - want[axis]) < 0.25 * fe.period(axis), (got[k], want)
