@@ -919,3 +919,32 @@ def test_many_points_placed_on_their_faces_at_once_land_where_each_alone_does(tm
             for axis in (0, 1):  # on the seed's branch, as uv_near's
                 if fe.period(axis):
                     assert abs(got[k, axis] - want[axis]) < 0.25 * fe.period(axis), (got[k], want)
+
+
+def test_a_resampled_piece_is_lost_only_where_a_dropped_vertex_on_its_face_lies_beyond_the_budget(
+    cone_sampler, monkeypatch
+):
+    """``Traces._lost_pieces``: a re-sampled piece is refused where one of the vertices it drops
+    lies on its face's trim and farther than the chord budget from the new ring (the trace stopped
+    short of a narrow excursion). Vertices the new ring passes within the budget are not asked
+    about the trim at all (a check costs ~40 us: 74,000 of them in trj3_s1-al's reference)."""
+    base, cone, _ = cone_sampler
+    s = RingSampler(base.mesh, base.topo, VertexPool(), segment_length=1.0, chord_error=0.01)
+    # a square ring of side 10 at the plane; the piece from vertex 0 to vertex 2 drops vertex 1
+    corners = [(0.0, 0.0), (5.0, 0.0), (10.0, 0.0), (10.0, 10.0), (0.0, 10.0)]
+    ring = [s.pool.add(np.array([x, y, Z]), 0) for x, y in corners]
+    new_near = [ring[0], s.pool.add(np.array([5.0, 0.004, Z]), 0), *ring[2:]]  # within 0.01 of vertex 1
+    new_far = [ring[0], s.pool.add(np.array([5.0, 0.05, Z]), 0), *ring[2:]]  # 0.05 from it
+    face_of = {v: cone for v in ring}
+    asked = []
+    inside = {ring[1]: True}
+    monkeypatch.setattr(s, "_in_trim", lambda face, v: asked.append(v) or inside[v])
+    piece = (0, 2, [])
+    assert s._lost_pieces(ring, [piece], new_near, face_of) == []
+    assert asked == []  # within the budget: no trim check
+    assert s._lost_pieces(ring, [piece], new_far, face_of) == [piece]
+    assert asked == [ring[1]]
+    inside[ring[1]] = False  # beyond the budget but off the face's trim: not the curve's
+    assert s._lost_pieces(ring, [piece], new_far, face_of) == []
+    # a vertex with no face (a corner of the B-rep's edges) is never the curve's to lose
+    assert s._lost_pieces(ring, [piece], new_far, {v: cone for v in ring if v != ring[1]}) == []
