@@ -135,6 +135,11 @@ class FaceEval:
             return self.same_branch(uv, seed)
         return self.project(xyz, seed)
 
+    def surface_bounds(self) -> tuple[float, float, float, float]:
+        """(u0, u1, v0, v1): the parameter bounds of the face's whole surface (+-2e100 where it is
+        unbounded), within which ``project`` finds its points."""
+        return tuple(BRep_Tool.Surface_s(self.face).Bounds())
+
     def project(self, xyz: tuple[float, float, float], seed: tuple[float, float]) -> tuple[float, float]:
         """(u, v) of the point's projection on the surface (``NextValueOfUV`` from ``seed``), on the
         parameter branch nearest the seed: ``uv_near``'s way where Newton does not get there."""

@@ -80,6 +80,8 @@ MAX_END_BEND_ROUNDS = 6
 # of its 512,000 B-spline batches hold one point, 107,000 two)
 BATCH_MIN_D1 = 8
 BATCH_MIN_P = 4
+# ``_bounded_feet``: Gauss-Newton steps at most (trj7_b1-ec-214's feet settle in 2-4)
+BOUNDED_FOOT_ITER = 12
 MAX_REFINE_ROUNDS = 40  # halving a segment 24 times takes 1 m down to 60 nm: still failing means broken
 
 
@@ -552,9 +554,12 @@ class RunRefiner(FaceLimits, RunEnds):
             # settled at the foot of a point off the surface (see ``FaceEval._newton_uv``): the
             # foot, or (not ``foot``) no answer from Newton; either way no more steps
             step2 = su * su * a11 + 2.0 * su * sv * a12 + sv * sv * a22
+            # (a foot, a seed for another solve, also where the gap is under SETTLED_GAP_MM: points
+            # of a B-rep edge 2-4 nm off the face stalled there until the last step, then went to
+            # OCCT's projection: 6,900 of trj7_b1-ec-214's reference)
             settled = (
                 ~within
-                & (gap2 > SETTLED_GAP_MM * SETTLED_GAP_MM)
+                & ((gap2 > SETTLED_GAP_MM * SETTLED_GAP_MM) | foot)
                 & (step2 < SETTLED_STEP_REL * SETTLED_STEP_REL * gap2)
             )
             if foot:
@@ -565,13 +570,26 @@ class RunRefiner(FaceLimits, RunEnds):
             act = act[go]
             u[act] += su[go]
             v[act] += sv[go]
-        # a point beyond the (u, v) box in a direction that does not wrap is not taken from Newton
-        box, period = self._uv_box[face], self._period[face]
-        for axis in (0, 1):
-            lo, hi = box[:, 2 * axis], box[:, 2 * axis + 1]
-            margin = 1e-9 * np.maximum(hi - lo, 1.0)
-            w = there[:, axis]
-            has &= (period[:, axis] > 0) | ((lo - margin <= w) & (w <= hi + margin))
+        period = self._period[face]
+        if foot:
+            # A foot beyond the surface's own bounds: the nearest point within them, as OCCT's
+            # projection gives it (within the bounds, the projection from the seed is Newton's foot,
+            # also beyond the face's box). Chords along a B-spline patch's side had 32,000 of the
+            # 422,000 feet of trj7_b1-ec-214's reference beyond it, at ~0.2 ms a projection.
+            # (Past a sphere's pole the point is on the sphere at other parameters: projected.)
+            bounds = self._surface_box[face]
+            out_of = has & ~_in_box(there[:, :2], bounds, period)
+            pole = out_of & _in_box(there[:, :2], bounds, np.where(self._box_checked[face], 0.0, 1.0))
+            has &= ~pole
+            beyond = np.flatnonzero(out_of & ~pole)
+            if len(beyond):
+                uv_b, ok_b = self._bounded_feet(face[beyond], xyz[beyond], there[beyond, :2], bounds[beyond])
+                there[beyond[ok_b], :2] = uv_b[ok_b]
+                has[beyond[~ok_b]] = False
+        else:
+            # a point beyond the face's (u, v) box in a direction that does not wrap is not taken
+            # from Newton
+            has &= _in_box(there[:, :2], self._uv_box[face], period)
         out = np.empty((n, 2))
         # on the branch nearest the seed (``FaceEval.same_branch``)
         shift = np.where(period > 0, np.round((seed - there[:, :2]) / np.where(period > 0, period, 1.0)), 0.0)
@@ -579,6 +597,58 @@ class RunRefiner(FaceLimits, RunEnds):
         for k in np.flatnonzero(~has).tolist():
             out[k] = self.mesh.faces[int(face[k])].project(tuple(xyz[k].tolist()), tuple(seed[k].tolist()))
         return out
+
+    def _bounded_feet(
+        self, face: np.ndarray, xyz: np.ndarray, uv: np.ndarray, bounds: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The nearest points to ``xyz`` of their faces' surfaces within the surfaces' parameter
+        ``bounds`` ((n, 4): u0, u1, v0, v1; the periodic directions are not bounded), from feet
+        ``uv`` beyond them: Gauss-Newton on the distance with each parameter held at a bound while
+        the distance would shrink past it (a 1D step along the bound's iso-curve for the other),
+        until a step moves the surface point less than ``SETTLED_STEP_REL`` of the gap (a seed for
+        another solve, as the free feet). Returns the (u, v) and a mask of those that settled."""
+        m = len(face)
+        lo = bounds[:, [0, 2]]
+        hi = bounds[:, [1, 3]]
+        held = self._period[face] == 0.0  # the directions with bounds
+        lo = np.where(held, lo, -np.inf)
+        hi = np.where(held, hi, np.inf)
+        w = np.clip(uv, lo, hi)
+        settled = np.zeros(m, dtype=bool)
+        act = np.arange(m)
+        p, du, dv = gp_Pnt(), gp_Vec(), gp_Vec()
+        for _ in range(BOUNDED_FOOT_ITER):
+            res = self._d1(face[act], w[act, 0], w[act, 1], self._ads, p, du, dv)
+            r = xyz[act] - res[:, :3]
+            su_, sv_ = res[:, 3:6], res[:, 6:9]
+            a11 = np.einsum("ij,ij->i", su_, su_)
+            a12 = np.einsum("ij,ij->i", su_, sv_)
+            a22 = np.einsum("ij,ij->i", sv_, sv_)
+            b = np.column_stack([np.einsum("ij,ij->i", su_, r), np.einsum("ij,ij->i", sv_, r)])
+            wa = w[act]
+            # at a bound, with the distance shrinking past it: held there
+            stop = ((wa <= lo[act]) & (b <= 0.0)) | ((wa >= hi[act]) & (b >= 0.0))
+            det = a11 * a22 - a12 * a12
+            # (a degenerate iso-line, a B-spline's pole, is no bound to stop at: projected instead)
+            ok = (det > 1e-12 * a11 * a22) & (a11 > 1e-12 * a22) & (a22 > 1e-12 * a11)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                free = (
+                    np.column_stack([a22 * b[:, 0] - a12 * b[:, 1], a11 * b[:, 1] - a12 * b[:, 0]])
+                    / det[:, None]
+                )
+                one = b / np.column_stack([a11, a22])  # along the other's bound
+            step = np.where(stop.any(axis=1)[:, None], np.where(stop, 0.0, one), free)
+            nw = np.clip(wa + step, lo[act], hi[act])
+            d = nw - wa
+            move2 = d[:, 0] ** 2 * a11 + 2.0 * d[:, 0] * d[:, 1] * a12 + d[:, 1] ** 2 * a22
+            gap2 = np.einsum("ij,ij->i", r, r)
+            w[act] = nw
+            done = ok & (move2 <= SETTLED_STEP_REL * SETTLED_STEP_REL * gap2)
+            settled[act[done]] = True
+            act = act[ok & ~done]
+            if not len(act):
+                break
+        return w, settled
 
     def _chord_ends_on(self, face: np.ndarray, a: np.ndarray, seed: np.ndarray) -> np.ndarray:
         """(n, 2): the (u, v) of chord ends ``a`` (n, 3) on faces ``face``, found from ``seed`` (the
@@ -929,6 +999,18 @@ class RunRefiner(FaceLimits, RunEnds):
         converged = ~np.isnan(out[:, 0])
         self.stats.newton_failures += int((~converged).sum())
         return out, converged, out_uv
+
+
+def _in_box(uv: np.ndarray, box: np.ndarray, period: np.ndarray) -> np.ndarray:
+    """(n,): whether each (u, v) lies within its (u0, u1, v0, v1) ``box`` (a relative 1e-9 to
+    spare) in each direction that does not wrap (``period`` 0); NaN is outside."""
+    inside = np.ones(len(uv), dtype=bool)
+    for axis in (0, 1):
+        lo, hi = box[:, 2 * axis], box[:, 2 * axis + 1]
+        margin = 1e-9 * np.maximum(hi - lo, 1.0)
+        w = uv[:, axis]
+        inside &= (period[:, axis] > 0) | ((lo - margin <= w) & (w <= hi + margin))
+    return inside
 
 
 def _gap_place(face: int, pa: np.ndarray, pb: np.ndarray) -> str:

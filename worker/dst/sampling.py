@@ -294,6 +294,7 @@ class RingSampler(Crossings, Traces, RunRefiner):
         self._box_checked = np.array([f.bounded for f in fs], dtype=bool).reshape(-1, 2)
         # each face's period in u and v (0 where it does not wrap: ``FaceEval.period``)
         self._period = np.array([(f.period(0), f.period(1)) for f in fs], dtype=np.float64).reshape(-1, 2)
+        self._surface_box = np.array([f.surface_bounds() for f in fs], dtype=np.float64).reshape(-1, 4)
         self._trim_memo: dict[tuple[int, int], bool] = {}  # (face, vertex) -> in its trim (``_in_trim``)
         # (face, chord end's xyz bytes) -> its (u, v) on the face (``_solve_from_chord``)
         self._chord_end_uv: dict[tuple[int, bytes], tuple[float, float]] = {}

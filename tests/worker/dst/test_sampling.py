@@ -870,14 +870,19 @@ def test_the_vertex_pool_keeps_faces_and_parameters_as_it_grows():
 @pytest.mark.parametrize(
     "kind, nurbs", [("hemisphere", True), ("hemisphere", False), ("torus", False), ("tube", False)]
 )
-def test_many_points_placed_on_their_faces_at_once_land_where_each_alone_does(tmp_path, kind, nurbs):
+def test_many_points_placed_on_their_faces_at_once_land_where_each_alone_does(
+    tmp_path, monkeypatch, kind, nurbs
+):
     """``RunRefiner._uv_near`` batches ``FaceEval.uv_near``'s Gauss-Newton over many points of mixed
     faces (a B-spline hemisphere and its flat bottom, an analytic sphere with its pole, a torus
     periodic both ways, a tilted tube's cylinders and planar ends): each point lands where
     ``uv_near`` puts it alone, on the seed's branch of a periodic surface: points on the surface,
     feet of points off it (``foot``), and where Newton gets nowhere (the seed far off, a point past
-    the face's box) OCCT's projection as before."""
+    the face's box) OCCT's projection as before. A foot past a bounded side of the surface (on its
+    extension) gets the surface's nearest point within its bounds, as OCCT's projection gives it,
+    without that projection (~0.2 ms a point)."""
     from tests.conftest import build_part, write_step
+    from worker.dst.exact import FaceEval
 
     mesh = _topomesh_of(write_step(build_part(kind), tmp_path / "p.step", nurbs=nurbs))
     topo = cut_topology(mesh, np.array([1.0]), on_plane_tol=C.ON_PLANE_TOL_MM, noise_tol=np.zeros(1))
@@ -902,20 +907,50 @@ def test_many_points_placed_on_their_faces_at_once_land_where_each_alone_does(tm
                 if fe.period(axis) and rng.uniform() < 0.3:
                     seed[axis] += fe.period(axis) * rng.choice([-1, 1])
             rows.append((f, p + off * normal, seed, off))
+        # beyond a side of the surface's own bounds (not wrapping, no pole there): the foot is on
+        # the surface's extension, and the nearest point within the bounds is on that side
+        u_lo, u_hi, v_lo, v_hi = fe.surface_bounds()
+        for axis, bound, inward in ((0, u_lo, 1.0), (0, u_hi, -1.0), (1, v_lo, 1.0), (1, v_hi, -1.0)):
+            if not fe.bounded[axis] or abs(bound) > 1e99 or not box[axis, 0] <= bound <= box[axis, 1]:
+                continue
+            if fe.is_pole(axis, bound):
+                continue
+            for _ in range(10):
+                uv = box[:, 0] + span * rng.uniform(0.1, 0.9, 2)
+                uv[axis] = bound
+                p = np.array(fe.point(*uv))
+                eps = np.zeros(2)
+                eps[axis] = 1e-6 * span[axis] * inward
+                along = (np.array(fe.point(*(uv + eps))) - p) / np.linalg.norm(
+                    np.array(fe.point(*(uv + eps))) - p
+                )
+                seed = uv.copy()
+                seed[axis] += 0.01 * span[axis] * inward
+                rows.append((f, p - 0.05 * along, seed, -1.0))  # 0.05 mm past the side, along it
     order = rng.permutation(len(rows))
     face = np.array([rows[k][0] for k in order])
     xyz = np.array([rows[k][1] for k in order])
     seed = np.array([rows[k][2] for k in order])
     off = np.array([rows[k][3] for k in order])
+    projected = []
+    project = FaceEval.project
+    past = off < 0  # the points past a side
+    assert past.any() == (kind == "hemisphere" and nurbs)  # its B-spline's rim, its bottom's sides
     for foot in (False, True):
+        projected.clear()
+        monkeypatch.setattr(FaceEval, "project", lambda fe, p, w: projected.append(p) or project(fe, p, w))
         got = s._uv_near(face, xyz, seed, foot=foot)
+        if foot:  # the nearest points within the bounds are found without OCCT's projection
+            assert not {tuple(p) for p in xyz[past].tolist()} & set(projected)
+        monkeypatch.setattr(FaceEval, "project", project)
         for k, f in enumerate(face.tolist()):
             fe = mesh.faces[f]
             want = fe.uv_near(tuple(xyz[k]), tuple(seed[k]), foot=foot)
             gap = np.linalg.norm(np.array(fe.point(*got[k])) - fe.point(*want))
             # a foot settles once a step moves less than SETTLED_STEP_REL of the gap: a step's
             # difference apart at most
-            assert gap <= (2e-3 * off[k] if foot else 0.0) + 1e-8, (f, xyz[k], seed[k], got[k], want)
+            far = np.linalg.norm(xyz[k] - fe.point(*want))
+            assert gap <= (2e-3 * far if foot else 0.0) + 1e-8, (f, xyz[k], seed[k], got[k], want)
             for axis in (0, 1):  # on the seed's branch, as uv_near's
                 if fe.period(axis):
                     assert abs(got[k, axis] - want[axis]) < 0.25 * fe.period(axis), (got[k], want)
