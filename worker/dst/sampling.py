@@ -30,6 +30,7 @@ from collections import Counter
 from dataclasses import dataclass, fields
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from worker.dst.chords import point_segment_distance
 from worker.dst.constants import MIN_LOOP_VERTICES, REPEAT_MM, SEGMENT_FILL
@@ -295,6 +296,9 @@ class RingSampler(Crossings, Traces, RunRefiner):
         # each face's period in u and v (0 where it does not wrap: ``FaceEval.period``)
         self._period = np.array([(f.period(0), f.period(1)) for f in fs], dtype=np.float64).reshape(-1, 2)
         self._surface_box = np.array([f.surface_bounds() for f in fs], dtype=np.float64).reshape(-1, 4)
+        # per face: a k-d tree of its topology triangles' corners and their (u, v) (``_node_uv``)
+        self._face_nodes: dict[int, tuple[cKDTree, np.ndarray] | None] = {}
+        self._tris_by_face: np.ndarray | None = None
         self._trim_memo: dict[tuple[int, int], bool] = {}  # (face, vertex) -> in its trim (``_in_trim``)
         # (face, chord end's xyz bytes) -> its (u, v) on the face (``_solve_from_chord``)
         self._chord_end_uv: dict[tuple[int, bytes], tuple[float, float]] = {}

@@ -13,6 +13,7 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from worker.dst.chords import CHORD_FILL, distances_to_segments, point_segment_distance
 from worker.dst.constants import MIN_LOOP_VERTICES, SEGMENT_FILL
@@ -175,13 +176,42 @@ class Traces:
 
     def _uv_at(self, face: int, v: int) -> tuple[float, float]:
         """(u, v) of pool vertex ``v`` on ``face``'s surface: projected from the (u, v) it was solved
-        at on that face, where it was, else from (0, 0) (``uv_of``: mostly OCCT's projection, ~0.3 ms
-        a point; 28 s of trj3_s1-al's 70 s reference went to the trim checks' alone)."""
+        at on that face, where it was (from (0, 0), mostly OCCT's projection at ~0.3 ms a point, 28 s
+        of trj3_s1-al's 70 s reference went to the trim checks' alone), else from the face's
+        topology node nearest it (``_node_uv``)."""
         ev = self.mesh.faces[face]
         seed = self.pool.uv_on(face, v)
         if seed is None:
-            return uv_of(ev, self.pool.xyz[v])
+            return self._node_uv(face, self.pool.xyz[v])
         return ev.uv_near(tuple(map(float, self.pool.xyz[v])), seed)
+
+    def _node_uv(self, face: int, p: np.ndarray) -> tuple[float, float]:
+        """(u, v) of point ``p`` on ``face``'s surface, found from the (u, v) of the face's topology
+        node nearest it, on the parameter branch nearest (0, 0): ``uv_of``'s answer (the same point to
+        1e-13 on trj3_s1-al) with one projection where it makes two, the first from (0, 0) (5,300
+        vertices of that file's reference, a B-rep edge's or a node's, 2.7 s against 1.1)."""
+        ev = self.mesh.faces[face]
+        nodes = self._face_nodes.get(face)
+        if nodes is None:
+            if self._tris_by_face is None:
+                self._tris_by_face = np.argsort(self.mesh.tri_face, kind="stable")
+            order = self._tris_by_face
+            lo, hi = np.searchsorted(self.mesh.tri_face[order], [face, face + 1])
+            tris = order[lo:hi]
+            nodes = self._face_nodes[face] = (
+                (
+                    cKDTree(self.mesh.xyz[self.mesh.tris[tris]].reshape(-1, 3)),
+                    self.mesh.tri_uv[tris].reshape(-1, 2),
+                )
+                if len(tris)
+                else None
+            )
+        if nodes is None:  # a face without triangles of its own
+            return uv_of(ev, p)
+        tree, uvs = nodes
+        seed = uvs[int(tree.query(p)[1])]
+        xyz = (float(p[0]), float(p[1]), float(p[2]))
+        return ev.same_branch(ev.uv_near(xyz, (float(seed[0]), float(seed[1]))), (0.0, 0.0))
 
     def _without_spurs(self, ring: list[int], face_of: dict[int, int]) -> list[int]:
         """``ring`` without the tips of its spurs onto a face's extension, tip after tip: vertices

@@ -983,3 +983,42 @@ def test_a_resampled_piece_is_lost_only_where_a_dropped_vertex_on_its_face_lies_
     assert s._lost_pieces(ring, [piece], new_far, face_of) == []
     # a vertex with no face (a corner of the B-rep's edges) is never the curve's to lose
     assert s._lost_pieces(ring, [piece], new_far, {v: cone for v in ring if v != ring[1]}) == []
+
+
+@pytest.mark.parametrize("kind", ["hemisphere", "torus"])
+def test_a_vertex_without_a_face_is_projected_from_the_faces_nearest_topology_node(
+    tmp_path, monkeypatch, kind
+):
+    """A pool vertex added without a face and (u, v) (a root on a B-rep edge, a topology node: off
+    the face's surface by the file's tolerance) gets its (u, v) on a face by one OCCT projection
+    from the (u, v) of that face's nearest topology node (``Traces._node_uv``), where ``uv_of``
+    projected from (0, 0) first: the same point, on the same parameter branch (nearest (0, 0))."""
+    from tests.conftest import build_part, write_step
+    from worker.dst.exact import FaceEval
+    from worker.dst.face_limits import uv_of
+
+    mesh = _topomesh_of(write_step(build_part(kind), tmp_path / "p.step", nurbs=kind == "hemisphere"))
+    topo = cut_topology(mesh, np.array([1.0]), on_plane_tol=C.ON_PLANE_TOL_MM, noise_tol=np.zeros(1))
+    s = RingSampler(mesh, topo, VertexPool(), segment_length=1.0, chord_error=0.01)
+    rng = np.random.default_rng(3)
+    calls = []
+    project = FaceEval.project
+    for f, fe in enumerate(mesh.faces):
+        for _ in range(15):
+            lo, hi = np.array([fe.u0, fe.v0]), np.array([fe.u1, fe.v1])
+            uv = lo + (hi - lo) * rng.uniform(0.05, 0.95, 2)
+            p = np.array(fe.point(*uv))
+            q = np.array(fe.point(uv[0] + 1e-6, uv[1])) - p
+            r = np.array(fe.point(uv[0], uv[1] + 1e-6)) - p
+            normal = np.cross(q, r) / np.linalg.norm(np.cross(q, r))
+            v = s.pool.add(p + rng.choice([0.0, 1e-4, 0.01]) * normal, 0)  # no face, no (u, v)
+            monkeypatch.setattr(FaceEval, "project", lambda fe_, x, w: calls.append(x) or project(fe_, x, w))
+            calls.clear()
+            got = s._uv_at(f, v)
+            assert len(calls) <= 1
+            monkeypatch.setattr(FaceEval, "project", project)
+            want = uv_of(fe, s.pool.xyz[v])
+            assert np.linalg.norm(np.array(fe.point(*got)) - fe.point(*want)) < 1e-9
+            for axis in (0, 1):
+                if fe.period(axis):
+                    assert abs(got[axis] - want[axis]) < 0.25 * fe.period(axis)
