@@ -11,6 +11,7 @@ sampler's).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 from OCP.collections import Array1_double
@@ -22,7 +23,7 @@ from worker.dst.constants import LEVEL_TOL_MM, NEWTON_MAX_ITER
 from worker.dst.runs import BRIDGE_POINT, Run
 
 TRIM_TOL_MM = 1e-6
-TRIM_ENTRY_TOL_MM = 1e-5  # where a section crosses its face's trim: found to this (``_into_trim``)
+TRIM_ENTRY_TOL_MM = 1e-5  # where a section crosses its face's trim: found to this (``_into_trims``)
 # C0 lines of a face this close to its (u, v) box's sides are its edges' business (relative to the box)
 KINK_MARGIN_REL = 1e-9
 KINK_MIN_SPACING_REL = 1e-9  # a kink this close to a run's end (relative to its length) is that end
@@ -258,18 +259,11 @@ class FaceLimits:
         tol = 1e-9 * np.maximum(box[:, [1, 3]] - box[:, [0, 2]], 1.0)
         return (uv < box[:, [0, 2]] - tol) & chk, (uv > box[:, [1, 3]] + tol) & chk
 
-    def _into_trim(
-        self,
-        f: int,
-        zc: float,
-        step: float,
-        outside: np.ndarray,
-        inside: np.ndarray,
-        uv_out: np.ndarray,
-        uv_in: np.ndarray,
-    ) -> tuple[np.ndarray, np.ndarray] | None:
-        """The point (xyz, (u, v)) where face ``f``'s section curve at height ``zc`` enters the face's
-        trim between ``outside`` (a point of the curve beyond the trim, Newton's, at ``uv_out``) and
+    def _into_trims(
+        self, jobs: Sequence[tuple[int, float, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
+    ) -> list[tuple[np.ndarray, np.ndarray] | None]:
+        """For each job (f, zc, step, outside, inside, uv_out, uv_in), the point (xyz, (u, v)) where
+        face ``f``'s section curve at height ``zc`` enters the face's trim between ``outside`` (a point of the curve beyond the trim, Newton's, at ``uv_out``) and
         ``inside`` (one inside it, at ``uv_in``; NaN for a run's end vertex, which has none):
         bisection between them, each point solved by Newton from a seed between their (u, v) (and
         kept between them along their chord), down to TRIM_ENTRY_TOL_MM; the outermost point found
@@ -281,42 +275,77 @@ class FaceLimits:
         ``BRepExtrema`` measures it: near a loose file's edge a point inside the (u, v) trim can
         still lie off the face by up to the edge's tolerance (0.005 mm on trj4_k1_top-pe-214 at z =
         1.5, edge tolerances of 0.006 mm). That second test is costly (~0.3 ms), so the bisection
-        runs on the first, and only where its point fails the second goes on inward with both."""
-        ev = self.mesh.faces[f]
-        span = float(np.linalg.norm(inside - outside))
+        runs on the first, and only where its point fails the second goes on inward with both.
+
+        The jobs' bisections run side by side: each step's Newton solves of all the jobs still
+        bisecting go in one batch (a single point's Newton call cost ~0.2 ms: 11,000 of them in
+        trj7_b1-ec-214's build); each job's steps, tests and answer are its own."""
+        n = len(jobs)
+        if not n:
+            return []
+        faces = [self.mesh.faces[int(j[0])] for j in jobs]
+        outside = np.array([j[3] for j in jobs], dtype=np.float64).reshape(n, 3)
+        inside = np.array([j[4] for j in jobs], dtype=np.float64).reshape(n, 3)
+        span = np.linalg.norm(inside - outside, axis=1)
         # the two points' (u, v) on one branch: each step seeds Newton between them. Those Newton
         # found, not fresh projections: one seeded far from its point can come back at another
         # point of the surface (bug24595_281390 turned (53.4, -11.0, 47.0) at z = 7.5: seeded at
         # (0, 0), both came back at v = 0.05, off the face's box, v 0.70 to 1.08; the first seed
         # between them took Newton 5 mm away, and no entry was found). A run's end vertex is
         # projected from the other point's (u, v).
-        uv_out = np.asarray(uv_out, dtype=np.float64)
-        if np.isnan(uv_in).any():
-            uv_in = ev.uv_near(tuple(map(float, inside)), tuple(map(float, uv_out)))
-        uv_in = np.array(ev.same_branch(tuple(map(float, uv_in)), tuple(map(float, uv_out))))
-        face, plane, trust = np.array([f]), np.array([zc]), np.array([step])
+        uv_out = np.array([j[5] for j in jobs], dtype=np.float64).reshape(n, 2)
+        uv_in = np.array([j[6] for j in jobs], dtype=np.float64).reshape(n, 2)
+        for k, ev in enumerate(faces):
+            w_out = tuple(map(float, uv_out[k]))
+            w_in = uv_in[k]
+            if np.isnan(w_in).any():
+                w_in = ev.uv_near(tuple(map(float, inside[k])), w_out)
+            uv_in[k] = ev.same_branch(tuple(map(float, w_in)), w_out)
+        face = np.array([int(j[0]) for j in jobs], dtype=np.int64)
+        plane = np.array([float(j[1]) for j in jobs])
+        trust = np.array([float(j[2]) for j in jobs])
 
-        def bisect(lo: float, hi: float, exact: bool) -> tuple[float, tuple[np.ndarray, np.ndarray] | None]:
-            best = None
-            while (hi - lo) * span > TRIM_ENTRY_TOL_MM:
-                mid = 0.5 * (lo + hi)
-                seed = uv_out + mid * (uv_in - uv_out)
-                p, ok, uv = self._newton(face, seed[:1], seed[1:], plane, trust)
-                t = chord_position(np.nan_to_num(p), outside[None], inside[None])[0]
-                if not ok[0] or not 0.0 < t < 1.0:
-                    break
-                if ev.strictly_contains(float(uv[0, 0]), float(uv[0, 1]), tol=TRIM_TOL_MM) and (
-                    not exact or ev.holds(tuple(p[0]), TRIM_TOL_MM, tuple(uv[0]))
-                ):
-                    hi, best = mid, (p[0], uv[0])
-                else:
-                    lo = mid
-            return hi, best
+        def bisect(ids: list[int], lo: np.ndarray, exact: bool) -> tuple[np.ndarray, list]:
+            hi = np.ones(len(ids))
+            best: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(ids)
+            active = list(range(len(ids)))
+            while True:
+                active = [i for i in active if (hi[i] - lo[i]) * span[ids[i]] > TRIM_ENTRY_TOL_MM]
+                if not active:
+                    return hi, best
+                at = np.array([ids[i] for i in active])
+                mid = 0.5 * (lo[active] + hi[active])
+                seed = uv_out[at] + mid[:, None] * (uv_in[at] - uv_out[at])
+                p, ok, uv = self._newton(face[at], seed[:, 0], seed[:, 1], plane[at], trust[at])
+                t = chord_position(np.nan_to_num(p), outside[at], inside[at])
+                going = []
+                for q, i in enumerate(active):
+                    if not ok[q] or not 0.0 < t[q] < 1.0:
+                        continue  # this one's bisection stops
+                    ev = faces[ids[i]]
+                    if ev.strictly_contains(float(uv[q, 0]), float(uv[q, 1]), tol=TRIM_TOL_MM) and (
+                        not exact or ev.holds(tuple(p[q]), TRIM_TOL_MM, tuple(uv[q]))
+                    ):
+                        hi[i], best[i] = mid[q], (p[q], uv[q])
+                    else:
+                        lo[i] = mid[q]
+                    going.append(i)
+                active = going
 
-        at, best = bisect(0.0, 1.0, False)
-        if best is None or ev.holds(tuple(best[0]), TRIM_TOL_MM, tuple(best[1])):
-            return best
-        return bisect(at, 1.0, True)[1]
+        everyone = list(range(n))
+        at, best = bisect(everyone, np.zeros(n), False)
+        out: list[tuple[np.ndarray, np.ndarray] | None] = list(best)
+        # inside the (u, v) trim but off the face as BRepExtrema measures it: on inward with both tests
+        again = [
+            k
+            for k in everyone
+            if best[k] is not None and not faces[k].holds(tuple(best[k][0]), TRIM_TOL_MM, tuple(best[k][1]))
+        ]
+        if again:
+            _, best2 = bisect(again, at[again], True)
+            for k, b in zip(again, best2, strict=True):
+                out[k] = b
+        return out
 
     def _drop_off_trim_ends(
         self, runs: list[Run], ri: np.ndarray, xyz: np.ndarray, vid: np.ndarray, uv: np.ndarray
@@ -374,7 +403,7 @@ class FaceLimits:
         """Where a stretch of a run's new points (``ri``, ``xyz``, ``vid``, ``uv`` sorted by run and
         arc length) is dropped (``vid`` -2: beyond the face's (u, v) box or trim), the curve's points
         where it crosses the trim between the stretch and the kept points either side of it
-        (``_into_trim``) take the stretch's end points' places (a stretch of one point gets a second):
+        (``_into_trims``) take the stretch's end points' places (a stretch of one point gets a second):
         the ring leaves the face's curve at the face's boundary, a point of the B-rep, not at
         whichever of its samples came last inside. Where the surface's curve leaves the face between
         two of its edges' crossings that the file's tolerance lets apart (boxed_sphere turned (30.7,
@@ -394,8 +423,27 @@ class FaceLimits:
         breaks = np.flatnonzero((np.diff(ks) != 1) | (ri[ks[1:]] != ri[ks[:-1]]))
         starts, stops = ks[np.concatenate([[0], breaks + 1])], ks[np.concatenate([breaks, [len(ks) - 1]])]
         added: list[tuple[int, np.ndarray, np.ndarray]] = []  # (insert before, xyz, uv)
+        # each stretch's entries from either side (from where its ends were dropped, towards their
+        # kept neighbours, which no other stretch moves), all bisected together
+        jobs = []
         for a, b in zip(starts.tolist(), stops.tolist(), strict=True):
-            beyond = {k: (xyz[k].copy(), uv[k].copy()) for k in (a, b)}  # (where they were dropped)
+            for k, beside in ((a, a - 1), (b, b + 1)):
+                if 0 <= beside < n and ri[beside] == ri[k] and vid[beside] != -2:
+                    if vid[beside] not in self.corner_vids:
+                        r = int(ri[k])
+                        jobs.append(
+                            (
+                                int(run_face[r]),
+                                float(run_z[r]),
+                                float(run_step[r]),
+                                xyz[k].copy(),
+                                xyz[beside].copy(),
+                                uv[k].copy(),
+                                uv[beside].copy(),
+                            )
+                        )
+        entries = iter(self._into_trims(jobs))
+        for a, b in zip(starts.tolist(), stops.tolist(), strict=True):
             moved = False
             at_corner, entered = False, None
             for k, beside in ((a, a - 1), (b, b + 1)):
@@ -404,17 +452,7 @@ class FaceLimits:
                 if vid[beside] in self.corner_vids:
                     at_corner = True
                     continue
-                r = int(ri[k])
-                out_xyz, out_uv = beyond[k]
-                entry = self._into_trim(
-                    int(run_face[r]),
-                    float(run_z[r]),
-                    float(run_step[r]),
-                    out_xyz,
-                    xyz[beside],
-                    out_uv,
-                    uv[beside],
-                )
+                entry = next(entries)
                 if entry is None:
                     continue
                 self.stats.trim_entry_points += 1

@@ -170,7 +170,7 @@ class RunEnds:
         trim. Where the face's curve runs on the surface's extension past the edge there instead
         (bug24595_281390 turned (-119.7, -47.5, -168.3) at z = 43.5, a corner 0.033 mm from face 0's
         curve, which there lies 0.030 mm beyond the face), the point where the curve enters the trim
-        on its way to the end segment's other point ``inner`` (``_into_trim``), within the same
+        on its way to the end segment's other point ``inner`` (``_into_trims``), within the same
         reach: bug24595_281390 turned (14.5, -140.6, 37.4) at z = 103.1 had a corner 0.030 mm from
         face 15's curve, whose nearest point lay beyond the trim, and the 0.78 mm segment from the
         corner passed 0.028 mm from the curve where it entered the face 0.011 mm further on."""
@@ -184,13 +184,29 @@ class RunEnds:
         near = np.minimum(2.0 * np.where(np.isfinite(off), off, 0.0) + self.chord, reach)
         dist = np.linalg.norm(np.nan_to_num(xyz[:, :2]) - self.pool.xyz[vid, :2], axis=1)
         ok &= dist <= near
-        for i in np.flatnonzero(ok).tolist():
-            if self.mesh.faces[face[i]].contains(float(out_uv[i, 0]), float(out_uv[i, 1]), tol=TRIM_TOL_MM):
-                continue
-            ok[i] = False
-            entry = self._into_trim(
-                int(face[i]), float(zc[i]), float(step[i]), xyz[i], inner[i], out_uv[i], inner_uv[i]
+        off_trim = [
+            i
+            for i in np.flatnonzero(ok).tolist()
+            if not self.mesh.faces[face[i]].contains(
+                float(out_uv[i, 0]), float(out_uv[i, 1]), tol=TRIM_TOL_MM
             )
+        ]
+        ok[off_trim] = False
+        entries = self._into_trims(
+            [
+                (
+                    int(face[i]),
+                    float(zc[i]),
+                    float(step[i]),
+                    xyz[i].copy(),
+                    inner[i],
+                    out_uv[i].copy(),
+                    inner_uv[i],
+                )
+                for i in off_trim
+            ]
+        )
+        for i, entry in zip(off_trim, entries, strict=True):
             if entry is not None and np.linalg.norm(entry[0][:2] - self.pool.xyz[vid[i], :2]) <= near[i]:
                 xyz[i], out_uv[i], ok[i] = entry[0], entry[1], True
                 self.stats.trim_entry_points += 1

@@ -160,7 +160,7 @@ class SamplingStats:
     inflection_checks: int = 0  # segments checked again for an inflection inside (inflected_segments)
     end_bend_checks: int = 0  # run end segments checked again for a bend at their corner (END_BEND_FACTOR)
     gap_ends: int = 0  # points added next to run ends off their face's curve (GAP_END_REL)
-    trim_entry_points: int = 0  # points put where a section leaves or enters its face (_into_trim)
+    trim_entry_points: int = 0  # points put where a section leaves or enters its face (_into_trims)
     unchecked_segments: int = 0  # segments whose midpoint could not be placed (see _midpoints_off_the_path)
     unresolved_segments: int = 0  # segments still over budget after every round (``keep_unresolved``)
     off_trim_crossings: int = 0  # crossings whose root lay beyond their face's trim (see _drop_off_trim)
