@@ -339,6 +339,20 @@ def _turned(name: str, turn: tuple[float, float, float]) -> tuple[Path, SlicePar
     return path, _params(path).model_copy(update=dict(zip(ROTATION_FIELDS, turn, strict=True)))
 
 
+def _reference_at(mesh, heights: np.ndarray):
+    """The report's exact reference (1 um chord, its own finer topology) of the mesh's part at
+    ``heights`` alone."""
+    diag, _ = bbox_diagonal(mesh.part)
+    return exact_sections(
+        mesh.part,
+        heights,
+        chord=1e-3,
+        segment_length=2.0,
+        deflection=0.5 * topo_deflection(diag),
+        helper=False,
+    )
+
+
 @pytest.mark.slow
 def test_a_tongue_beyond_a_pinned_loops_crossings_is_sampled_round_its_tip():
     """r103ec turned to (35.3, -158.7, -40.5): at z = 52.5 and 54.3 the plane grazes a tilted crest
@@ -735,15 +749,7 @@ def test_a_gap_of_the_brep_is_named_where_the_ring_and_the_reference_bridge_it(t
     (js,) = np.nonzero(np.isclose(mesh.planes.z[:, None], (16.9, 40.3, 41.3, 75.1, 78.9, 79.1)).any(axis=1))
     assert len(js) == 6
     heights = mesh.planes.section_z[js]
-    diag, _ = bbox_diagonal(mesh.part)
-    ref = exact_sections(
-        mesh.part,
-        heights,
-        chord=1e-3,
-        segment_length=2.0,
-        deflection=0.5 * topo_deflection(diag),
-        helper=False,
-    )
+    ref = _reference_at(mesh, heights)
     ref_set, _, _ = reference_segments(ref.loops, ref.corners, 1e-3, len(js))
     placed = Placed(
         *on_bed(MeshInput("dst", "dst", mesh.vertices32.astype(np.float64), mesh.triangles)), heights
@@ -1373,3 +1379,51 @@ def test_the_baselines_of_a_file_the_mesher_leaves_with_a_hole_are_of_its_repair
             closest = trimesh.triangles.closest_point(near, np.broadcast_to(p, (len(near), 3)))
             dist = np.linalg.norm(closest - p, axis=1).min()
             assert dist < BASELINE_PRESETS[m.name].linear + 0.02, (m.name, p, dist)
+
+
+@pytest.mark.slow
+def test_a_topology_edge_crossing_lower_planes_is_split_where_it_grazes_the_next():
+    """trj7_b1-ec-214 as read, its top plane (z = 56.9 above the bed, 0.1 mm under a ridge of face
+    42 that stands between two level lines 4.77 mm apart): BRepMesh's triangles there run across
+    the ridge, 0.24 mm below it at a deflection of 0.02 mm, their edges from 0.47 mm below the
+    plane to 0.005 mm below it, crossing the planes below. ``split_grazed_edges`` looked only at
+    edges crossing no plane, so the mesh's cut joined the ridge's two sides: the DST ring and the
+    report's reference zigzagged from one level line to the other (DST's cut 2,960 mm, the
+    reference's 1,874 mm in three loops). Now such edges are split at the ridge, and both are the
+    one loop OCCT's own section has there (141.7 mm: the two lines and the ridge's ends)."""
+    from OCP.BRepAlgoAPI import BRepAlgoAPI_Section
+    from OCP.BRepGProp import BRepGProp
+    from OCP.gp import gp_Dir, gp_Pln, gp_Pnt
+    from OCP.GProp import GProp_GProps
+
+    from worker.dst.cuts import cut_mesh
+    from worker.dst.measure import MeshInput, Placed, on_bed
+
+    path = CORPUS / "freeform/trj7_b1-ec-214.stp"
+    if not path.is_file():
+        pytest.skip(f"the shared STEP corpus is not beside this checkout ({CORPUS})")
+    mesh = slice_step(path, _params(path))
+    j = len(mesh.planes.section_z) - 1
+    assert abs(float(mesh.planes.z[j]) - 56.9) < 1e-3
+    heights = mesh.planes.section_z[j : j + 1]
+    section = BRepAlgoAPI_Section(
+        mesh.part.compound,
+        gp_Pln(gp_Pnt(0.0, 0.0, mesh.z_offset + float(heights[0])), gp_Dir(0.0, 0.0, 1.0)),
+        False,
+    )
+    section.Approximation(True)
+    section.Build()
+    props = GProp_GProps()
+    BRepGProp.LinearProperties_s(section.Shape(), props)
+    occt_length = props.Mass()
+    assert 141.0 < occt_length < 142.5
+    placed = Placed(
+        *on_bed(MeshInput("dst", "dst", mesh.vertices32.astype(np.float64), mesh.triangles)), heights
+    )
+    cut = cut_mesh(placed.vertices, placed.triangles, heights)
+    assert cut.loops.tolist() == [1] and cut.open_chains.tolist() == [0]
+    cut_length = float(np.linalg.norm(cut.seg[:, 1] - cut.seg[:, 0], axis=1).sum())
+    assert abs(cut_length - occt_length) < 0.1  # an inscribed polyline, within the chord budget
+    ref = _reference_at(mesh, heights)
+    assert len(ref.loops[0]) == 1
+    assert abs(closed_length(ref.loops[0][0]) - occt_length) < 0.1
