@@ -266,8 +266,8 @@ def test_corpus_file(path: Path, tmp_path):
 def _assert_closed_as_an_stl_reader_reads_it(mesh) -> None:
     """The STL's corners, equal float32 points merged as a slicer merges them: no facet of zero area
     (a repeated corner) and a closed 2-manifold, except where the build warns that rings touch
-    within the float32 rounding (trj7 at z = 56.9, where two faces touch along a line; trj3_s1-al,
-    whose five solids touch): there it says how many edges of four triangles and facets of zero
+    within the float32 rounding (trj7 at z = 7.3-7.7 and 23.3-23.7; trj3_s1-al, whose five solids
+    touch): there it says how many edges of four triangles and facets of zero
     area a slicer gets, and those are the counts. No open edge either way."""
     from worker.dst.meshops import repeated_corner
     from worker.dst.stl_io import merge_equal_vertices
