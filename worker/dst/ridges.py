@@ -44,7 +44,6 @@ _ON_LINE_REL = 1e-6
 _GRAZE_ROUNDS = 3  # edges made by grazed splits checked again, at most this many times
 _NOISE_MM = 1e-9  # a grazed edge's extreme must pass its plane by more than this (evaluator noise)
 _END_MARGIN = 1e-3  # an extreme this close (a fraction of the edge) to an end is at the end
-_CLOSE_REL = 0.25  # a grazed edge's split point may lie this far (times its length) off the edge
 _UV_GAP_MM = 1e-6  # a corner whose (u, v) gives a point farther than this from its node is projected
 
 
@@ -104,17 +103,16 @@ def split_grazed_edges(mesh: TopoMesh, planes: np.ndarray, depth: np.ndarray | N
     cuts the surface into pieces the topology mesh's chords need not show: the ends of an edge lie
     up to a deflection below a crest that rises above the plane between them. The mesh's section
     then joins what the exact section keeps apart, or parts what it joins (a crest's tongue cut off
-    from its tip; two loops touching at a saddle made one). Each edge with an end within the band of
-    the nearest plane beyond its ends (whether or not it crosses planes between them) is checked at
-    its middle (the surface along the edge's (u, v)
+    from its tip; two loops touching at a saddle made one). Each edge with both ends within the band
+    of the nearest plane beyond them is checked at its middle (the surface along the edge's (u, v)
     segment, or the B-rep edge's own curve); where the parabola through its ends and middle comes
     near the plane, the exact extreme along the edge is found (bounded Brent), and if it lies beyond
     the plane by more than ``depth`` (per plane, mm: what a float32 slicer cannot tell from the plane;
     default ``_NOISE_MM``) the edge is split there. Edges made by the splits are checked again (at most
     ``_GRAZE_ROUNDS`` times).
 
-    Edges inside a flat face are straight (never checked); the planes an edge crosses are the cut's
-    business, even where the surface crosses one three times.
+    Edges inside a flat face are straight (never checked); an edge crossing a plane is the cut's
+    business, even where the surface crosses it three times.
     """
     planes = np.asarray(planes, dtype=np.float64)
     order = np.argsort(planes)
@@ -150,20 +148,13 @@ def _grazed_edges(
     z = mesh.xyz[:, 2]
     za, zb = z[a], z[b]
     lo, hi = np.minimum(za, zb), np.maximum(za, zb)
-    # the planes next beyond the ends: the first above the higher end, the last below the lower
-    # (an edge may cross planes between its ends and still graze the next one: trj7_b1-ec-214's
-    # long triangles over a ridge 0.1 mm above its top plane, their edges from 0.47 mm below it
-    # to 0.005 mm below, the ridge between: the mesh's cut joined the ridge's two sides)
-    k_up = np.searchsorted(planes, hi, side="right")
-    k_down = np.searchsorted(planes, lo, side="left") - 1
+    k = np.searchsorted(planes, lo, side="left")  # the first plane at or above the lower end
     last = len(planes) - 1
-    up = np.where(k_up <= last, planes[np.minimum(k_up, last)], np.inf)
-    down = np.where(k_down >= 0, planes[np.maximum(k_down, 0)], -np.inf)
+    up = np.where(k <= last, planes[np.minimum(k, last)], np.inf)
+    down = np.where(k > 0, planes[np.maximum(k - 1, 0)], -np.inf)
     band = BAND_DEFLECTIONS * mesh.deflection
-    # a plane beyond an end within the band (none through an end: the edge touches it there)
-    through = np.searchsorted(planes, lo, side="left") < np.searchsorted(planes, lo, side="right")
-    through |= np.searchsorted(planes, hi, side="left") < k_up
-    cand = np.flatnonzero(~through & ((up - hi <= band) | (lo - down <= band)))
+    # not crossed (no plane between the ends, nor through one), a plane beyond within the band
+    cand = np.flatnonzero((up > hi) & ((up - hi <= band) | (lo - down <= band)))
     if not len(cand):
         return {}
     t, i = np.divmod(first[cand], 3)
@@ -212,9 +203,10 @@ def _grazed_edges(
             continue
         span[c] = (ei, *lo_hi)
         zm[c] = ev.point(0.5 * sum(lo_hi))[2]
+    kc = k[cand]
     sag = zm - 0.5 * (za + zb)  # NaN: not checked
     sign = np.where(sag > 0.0, -1.0, 1.0)  # -1: the edge bulges up, towards the plane above
-    plane_j = np.where(sag > 0.0, k_up[cand], k_down[cand])
+    plane_j = np.where(sag > 0.0, kc, kc - 1)
     ok = np.isfinite(sag) & (sag != 0.0) & (plane_j >= 0) & (plane_j <= last)
     plane = planes[np.clip(plane_j, 0, last)]
     # the extreme of the parabola through the ends and the middle, beyond the plane or short of it
@@ -249,12 +241,8 @@ def _grazed_edges(
     c = np.array([c for c, _ in found])
     pts = np.array([p for _, p in found])
     na, nb = a[cand[c]], b[cand[c]]
-    # near the edge (a point elsewhere: a profile not along the edge): within the band, or within a
-    # quarter of the edge's length, the sag of a 90-degree arc (BRepMesh's triangles can stray far
-    # past its deflection: trj7_b1-ec-214's over a ridge, 0.24 mm below it along an 8.5 mm edge
-    # at a deflection of 0.02 mm)
-    length = np.linalg.norm(mesh.xyz[nb] - mesh.xyz[na], axis=1)
-    close = point_segment_distance(pts, mesh.xyz[na], mesh.xyz[nb]) <= np.maximum(band, _CLOSE_REL * length)
+    # near the edge (a point elsewhere: a profile not along the edge)
+    close = point_segment_distance(pts, mesh.xyz[na], mesh.xyz[nb]) <= band
     return {
         (int(min(i, j)), int(max(i, j))): p
         for i, j, p, ok in zip(na.tolist(), nb.tolist(), pts, close.tolist(), strict=True)
