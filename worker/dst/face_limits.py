@@ -35,6 +35,13 @@ def uv_of(ev, p: np.ndarray) -> tuple[float, float]:
     return ev.uv_near(xyz, ev.uv_near(xyz, (0.0, 0.0)))
 
 
+def beyond_box(uv: np.ndarray, box: np.ndarray, checked: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(k, 2) masks of (u, v) ``uv`` (k, 2) below and above their (u0, u1, v0, v1) ``box`` (k, 4)
+    by more than a relative 1e-9, in the directions ``checked`` (k, 2) (NaN is within)."""
+    tol = 1e-9 * np.maximum(box[:, [1, 3]] - box[:, [0, 2]], 1.0)
+    return (uv < box[:, [0, 2]] - tol) & checked, (uv > box[:, [1, 3]] + tol) & checked
+
+
 class FaceLimits:
     """``RunRefiner``'s handling of face limits (a mixin)."""
 
@@ -255,19 +262,18 @@ class FaceLimits:
     def _beyond_face_box(self, face: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(k, 2) masks of points' u and v below and above their face's (u, v) box, where a point
         beyond it in that parameter is certainly off the face (``FaceEval.bounded``)."""
-        box, chk = self._uv_box[face], self._box_checked[face]
-        tol = 1e-9 * np.maximum(box[:, [1, 3]] - box[:, [0, 2]], 1.0)
-        return (uv < box[:, [0, 2]] - tol) & chk, (uv > box[:, [1, 3]] + tol) & chk
+        return beyond_box(uv, self._uv_box[face], self._box_checked[face])
 
     def _into_trims(
         self, jobs: Sequence[tuple[int, float, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
     ) -> list[tuple[np.ndarray, np.ndarray] | None]:
         """For each job (f, zc, step, outside, inside, uv_out, uv_in), the point (xyz, (u, v)) where
-        face ``f``'s section curve at height ``zc`` enters the face's trim between ``outside`` (a point of the curve beyond the trim, Newton's, at ``uv_out``) and
-        ``inside`` (one inside it, at ``uv_in``; NaN for a run's end vertex, which has none):
-        bisection between them, each point solved by Newton from a seed between their (u, v) (and
-        kept between them along their chord), down to TRIM_ENTRY_TOL_MM; the outermost point found
-        inside, or None where no point between them is found inside.
+        face ``f``'s section curve at height ``zc`` enters the face's trim between ``outside`` (a point
+        of the curve beyond the trim, Newton's, at ``uv_out``) and ``inside`` (one inside it, at
+        ``uv_in``; NaN for a run's end vertex, which has none): bisection between them, each point
+        solved by Newton from a seed between their (u, v) (and kept between them along their chord),
+        down to TRIM_ENTRY_TOL_MM; the outermost point found inside, or None where no point between them
+        is found inside.
 
         Inside is strictly inside the (u, v) trim (the classifier counts as on the boundary a band
         as wide as the edges' tolerances, whose outer side lies off the B-rep by as much: 0.011 mm
@@ -423,33 +429,37 @@ class FaceLimits:
         breaks = np.flatnonzero((np.diff(ks) != 1) | (ri[ks[1:]] != ri[ks[:-1]]))
         starts, stops = ks[np.concatenate([[0], breaks + 1])], ks[np.concatenate([breaks, [len(ks) - 1]])]
         added: list[tuple[int, np.ndarray, np.ndarray]] = []  # (insert before, xyz, uv)
-        # each stretch's entries from either side (from where its ends were dropped, towards their
-        # kept neighbours, which no other stretch moves), all bisected together
+        # each stretch's ends with a kept neighbour on their run: at a corner, or an entry to find
+        # from where the end was dropped towards that neighbour (no other stretch moves it); the
+        # entries all bisected together (``_into_trims`` reads the points before any moves)
+        sides: list[list[tuple[int, bool]]] = []  # per stretch: (its end, beside a corner)
         jobs = []
         for a, b in zip(starts.tolist(), stops.tolist(), strict=True):
-            for k, beside in ((a, a - 1), (b, b + 1)):
-                if 0 <= beside < n and ri[beside] == ri[k] and vid[beside] != -2:
-                    if vid[beside] not in self.corner_vids:
-                        r = int(ri[k])
-                        jobs.append(
-                            (
-                                int(run_face[r]),
-                                float(run_z[r]),
-                                float(run_step[r]),
-                                xyz[k].copy(),
-                                xyz[beside].copy(),
-                                uv[k].copy(),
-                                uv[beside].copy(),
-                            )
-                        )
-        entries = iter(self._into_trims(jobs))
-        for a, b in zip(starts.tolist(), stops.tolist(), strict=True):
-            moved = False
-            at_corner, entered = False, None
+            sides.append([])
             for k, beside in ((a, a - 1), (b, b + 1)):
                 if not (0 <= beside < n and ri[beside] == ri[k] and vid[beside] != -2):
                     continue
-                if vid[beside] in self.corner_vids:
+                corner = vid[beside] in self.corner_vids
+                sides[-1].append((k, corner))
+                if not corner:
+                    r = int(ri[k])
+                    jobs.append(
+                        (
+                            int(run_face[r]),
+                            float(run_z[r]),
+                            float(run_step[r]),
+                            xyz[k],
+                            xyz[beside],
+                            uv[k],
+                            uv[beside],
+                        )
+                    )
+        entries = iter(self._into_trims(jobs))
+        for (a, b), ends in zip(zip(starts.tolist(), stops.tolist(), strict=True), sides, strict=True):
+            moved = False
+            at_corner, entered = False, None
+            for k, corner in ends:
+                if corner:
                     at_corner = True
                     continue
                 entry = next(entries)

@@ -47,7 +47,7 @@ from worker.dst.constants import (
 )
 from worker.dst.errors import TessellationError
 from worker.dst.exact import SETTLED_GAP_MM, SETTLED_STEP_REL, UV_NEAR_MAX_ITER, UV_NEAR_TOL_MM
-from worker.dst.face_limits import FaceLimits
+from worker.dst.face_limits import FaceLimits, beyond_box
 from worker.dst.run_ends import RunEnds
 from worker.dst.runs import BRIDGE_POINT, GAP_POINT, GAP_SPAN_REL, Run
 
@@ -517,7 +517,10 @@ class RunRefiner(FaceLimits, RunEnds):
         ``face``, from ``seed`` (n, 2)): its Gauss-Newton on the distance batched (``_d1``: a few
         numpy calls a step instead of OCCT's D1 and a dozen Python lines a point and step), with
         the same steps, stops and box check; the points it does not place are projected one by
-        one (``FaceEval.project``), as ``uv_near`` projects them."""
+        one (``FaceEval.project``), as ``uv_near`` projects them. With ``foot``, a foot is taken
+        also where it settles within SETTLED_GAP_MM of the surface, and within the surface's own
+        bounds rather than the face's box (beyond them: ``_bounded_feet``), as that projection
+        would place it."""
         n = len(face)
         u, v = seed[:, 0].astype(np.float64), seed[:, 1].astype(np.float64)
         there = np.full((n, 3), np.nan)  # (u, v, squared gap) within the tolerance, or the settled foot
@@ -578,8 +581,8 @@ class RunRefiner(FaceLimits, RunEnds):
             # 422,000 feet of trj7_b1-ec-214's reference beyond it, at ~0.2 ms a projection.
             # (Past a sphere's pole the point is on the sphere at other parameters: projected.)
             bounds = self._surface_box[face]
-            out_of = has & ~_in_box(there[:, :2], bounds, period)
-            pole = out_of & _in_box(there[:, :2], bounds, np.where(self._box_checked[face], 0.0, 1.0))
+            out_of = has & ~_in_box(there[:, :2], bounds, period == 0.0)
+            pole = out_of & _in_box(there[:, :2], bounds, self._box_checked[face])
             has &= ~pole
             beyond = np.flatnonzero(out_of & ~pole)
             if len(beyond):
@@ -589,7 +592,7 @@ class RunRefiner(FaceLimits, RunEnds):
         else:
             # a point beyond the face's (u, v) box in a direction that does not wrap is not taken
             # from Newton
-            has &= _in_box(there[:, :2], self._uv_box[face], period)
+            has &= _in_box(there[:, :2], self._uv_box[face], period == 0.0)
         out = np.empty((n, 2))
         # on the branch nearest the seed (``FaceEval.same_branch``)
         shift = np.where(period > 0, np.round((seed - there[:, :2]) / np.where(period > 0, period, 1.0)), 0.0)
@@ -1001,16 +1004,10 @@ class RunRefiner(FaceLimits, RunEnds):
         return out, converged, out_uv
 
 
-def _in_box(uv: np.ndarray, box: np.ndarray, period: np.ndarray) -> np.ndarray:
-    """(n,): whether each (u, v) lies within its (u0, u1, v0, v1) ``box`` (a relative 1e-9 to
-    spare) in each direction that does not wrap (``period`` 0); NaN is outside."""
-    inside = np.ones(len(uv), dtype=bool)
-    for axis in (0, 1):
-        lo, hi = box[:, 2 * axis], box[:, 2 * axis + 1]
-        margin = 1e-9 * np.maximum(hi - lo, 1.0)
-        w = uv[:, axis]
-        inside &= (period[:, axis] > 0) | ((lo - margin <= w) & (w <= hi + margin))
-    return inside
+def _in_box(uv: np.ndarray, box: np.ndarray, checked: np.ndarray) -> np.ndarray:
+    """(n,): whether each (u, v) lies within its box in the directions ``checked`` (``beyond_box``)."""
+    below, above = beyond_box(uv, box, checked)
+    return ~(below | above).any(axis=1)
 
 
 def _gap_place(face: int, pa: np.ndarray, pb: np.ndarray) -> str:

@@ -198,9 +198,9 @@ class RunEnds:
                     int(face[i]),
                     float(zc[i]),
                     float(step[i]),
-                    xyz[i].copy(),
+                    xyz[i],
                     inner[i],
-                    out_uv[i].copy(),
+                    out_uv[i],
                     inner_uv[i],
                 )
                 for i in off_trim

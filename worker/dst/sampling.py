@@ -298,7 +298,6 @@ class RingSampler(Crossings, Traces, RunRefiner):
         self._surface_box = np.array([f.surface_bounds() for f in fs], dtype=np.float64).reshape(-1, 4)
         # per face: a k-d tree of its topology triangles' corners and their (u, v) (``_node_uv``)
         self._face_nodes: dict[int, tuple[cKDTree, np.ndarray] | None] = {}
-        self._tris_by_face: np.ndarray | None = None
         self._trim_memo: dict[tuple[int, int], bool] = {}  # (face, vertex) -> in its trim (``_in_trim``)
         # (face, chord end's xyz bytes) -> its (u, v) on the face (``_solve_from_chord``)
         self._chord_end_uv: dict[tuple[int, bytes], tuple[float, float]] = {}

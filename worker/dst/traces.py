@@ -191,14 +191,9 @@ class Traces:
         1e-13 on trj3_s1-al) with one projection where it makes two, the first from (0, 0) (5,300
         vertices of that file's reference, a B-rep edge's or a node's, 2.7 s against 1.1)."""
         ev = self.mesh.faces[face]
-        nodes = self._face_nodes.get(face)
-        if nodes is None:
-            if self._tris_by_face is None:
-                self._tris_by_face = np.argsort(self.mesh.tri_face, kind="stable")
-            order = self._tris_by_face
-            lo, hi = np.searchsorted(self.mesh.tri_face[order], [face, face + 1])
-            tris = order[lo:hi]
-            nodes = self._face_nodes[face] = (
+        if face not in self._face_nodes:
+            tris = np.flatnonzero(self.mesh.tri_face == face)
+            self._face_nodes[face] = (
                 (
                     cKDTree(self.mesh.xyz[self.mesh.tris[tris]].reshape(-1, 3)),
                     self.mesh.tri_uv[tris].reshape(-1, 2),
@@ -206,6 +201,7 @@ class Traces:
                 if len(tris)
                 else None
             )
+        nodes = self._face_nodes[face]
         if nodes is None:  # a face without triangles of its own
             return uv_of(ev, p)
         tree, uvs = nodes
