@@ -229,6 +229,14 @@ class FaceEval:
         p = self.ad.Value(u, v)
         return p.X(), p.Y(), p.Z()
 
+    def point_and_normal(self, u: float, v: float) -> tuple[np.ndarray, np.ndarray]:
+        """The surface's point at (u, v) and its unit normal there (NaN where Pu x Pv vanishes)."""
+        self.ad.D1(u, v, self._p, self._du, self._dv)
+        n = self._du.Crossed(self._dv)
+        size = n.Magnitude()
+        normal = np.array([n.X(), n.Y(), n.Z()]) / size if size > 0.0 else np.full(3, np.nan)
+        return np.array([self._p.X(), self._p.Y(), self._p.Z()]), normal
+
     def is_pole(self, axis: int, bound: float) -> bool:
         """Is the iso-line at ``bound`` of parameter ``axis`` (0: u, 1: v), across the face's (u, v)
         box, one point of the surface (a pole: the apex of a cap of revolution)? Three points along

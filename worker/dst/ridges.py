@@ -29,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 from OCP.GeomAbs import GeomAbs_Line, GeomAbs_Plane
 
-from worker.dst.chords import point_segment_distance
+from worker.dst.chords import chord_position
 from worker.dst.constants import ON_PLANE_TOL_MM
 from worker.dst.lowest import face_optimum_from_nodes, snap_local_extremes
 from worker.dst.splits import curve_span, edge_extreme_between, split_edges
@@ -44,6 +44,7 @@ _ON_LINE_REL = 1e-6
 _GRAZE_ROUNDS = 3  # edges made by grazed splits checked again, at most this many times
 _NOISE_MM = 1e-9  # a grazed edge's extreme must pass its plane by more than this (evaluator noise)
 _END_MARGIN = 1e-3  # an extreme this close (a fraction of the edge) to an end is at the end
+_CLOSE_REL = 0.25  # a grazed edge's split point may lie this far (times its length) off the edge
 _UV_GAP_MM = 1e-6  # a corner whose (u, v) gives a point farther than this from its node is projected
 
 
@@ -103,16 +104,18 @@ def split_grazed_edges(mesh: TopoMesh, planes: np.ndarray, depth: np.ndarray | N
     cuts the surface into pieces the topology mesh's chords need not show: the ends of an edge lie
     up to a deflection below a crest that rises above the plane between them. The mesh's section
     then joins what the exact section keeps apart, or parts what it joins (a crest's tongue cut off
-    from its tip; two loops touching at a saddle made one). Each edge with both ends within the band
-    of the nearest plane beyond them is checked at its middle (the surface along the edge's (u, v)
-    segment, or the B-rep edge's own curve); where the parabola through its ends and middle comes
-    near the plane, the exact extreme along the edge is found (bounded Brent), and if it lies beyond
-    the plane by more than ``depth`` (per plane, mm: what a float32 slicer cannot tell from the plane;
-    default ``_NOISE_MM``) the edge is split there. Edges made by the splits are checked again (at most
+    from its tip; two loops touching at a saddle made one). Each edge with an end within the band of
+    the nearest plane beyond its ends (whether or not it crosses planes between them) is checked at
+    its middle (the surface along the edge's (u, v) segment, or the B-rep edge's own curve); where
+    the parabola through its ends and middle comes near the plane (and for an edge inside a face, a
+    parabola through its quarter points too), the exact extreme along the edge is found (bounded
+    Brent), and if it lies beyond the plane by more than ``depth`` (per plane, mm: what a float32
+    slicer cannot tell from the plane; default ``_NOISE_MM``) and belongs to the edge
+    (``_along_edge``) the edge is split there. Edges made by the splits are checked again (at most
     ``_GRAZE_ROUNDS`` times).
 
-    Edges inside a flat face are straight (never checked); an edge crossing a plane is the cut's
-    business, even where the surface crosses it three times.
+    Edges inside a flat face are straight (never checked); the planes an edge crosses are the cut's
+    business, even where the surface crosses one three times.
     """
     planes = np.asarray(planes, dtype=np.float64)
     order = np.argsort(planes)
@@ -148,13 +151,20 @@ def _grazed_edges(
     z = mesh.xyz[:, 2]
     za, zb = z[a], z[b]
     lo, hi = np.minimum(za, zb), np.maximum(za, zb)
-    k = np.searchsorted(planes, lo, side="left")  # the first plane at or above the lower end
+    # the planes next beyond the ends: the first above the higher end, the last below the lower
+    # (an edge may cross planes between its ends and still graze the next one: trj7_b1-ec-214's
+    # long triangles over a ridge 0.1 mm above its top plane, their edges from 0.47 mm below it
+    # to 0.005 mm below, the ridge between: the mesh's cut joined the ridge's two sides)
+    k_up = np.searchsorted(planes, hi, side="right")
+    k_down = np.searchsorted(planes, lo, side="left") - 1
     last = len(planes) - 1
-    up = np.where(k <= last, planes[np.minimum(k, last)], np.inf)
-    down = np.where(k > 0, planes[np.maximum(k - 1, 0)], -np.inf)
+    up = np.where(k_up <= last, planes[np.minimum(k_up, last)], np.inf)
+    down = np.where(k_down >= 0, planes[np.maximum(k_down, 0)], -np.inf)
     band = BAND_DEFLECTIONS * mesh.deflection
-    # not crossed (no plane between the ends, nor through one), a plane beyond within the band
-    cand = np.flatnonzero((up > hi) & ((up - hi <= band) | (lo - down <= band)))
+    # a plane beyond an end within the band (none through an end: the edge touches it there)
+    through = np.searchsorted(planes, lo, side="left") < np.searchsorted(planes, lo, side="right")
+    through |= np.searchsorted(planes, hi, side="left") < k_up
+    cand = np.flatnonzero(~through & ((up - hi <= band) | (lo - down <= band)))
     if not len(cand):
         return {}
     t, i = np.divmod(first[cand], 3)
@@ -203,22 +213,34 @@ def _grazed_edges(
             continue
         span[c] = (ei, *lo_hi)
         zm[c] = ev.point(0.5 * sum(lo_hi))[2]
-    kc = k[cand]
     sag = zm - 0.5 * (za + zb)  # NaN: not checked
     sign = np.where(sag > 0.0, -1.0, 1.0)  # -1: the edge bulges up, towards the plane above
-    plane_j = np.where(sag > 0.0, kc, kc - 1)
+    plane_j = np.where(sag > 0.0, k_up[cand], k_down[cand])
     ok = np.isfinite(sag) & (sag != 0.0) & (plane_j >= 0) & (plane_j <= last)
     plane = planes[np.clip(plane_j, 0, last)]
     # the extreme of the parabola through the ends and the middle, beyond the plane or short of it
     # by less than a quarter of the sag (a profile not quite a parabola: an edge turns ~20 deg at most)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        tp = np.clip(0.5 + (zb - za) / (8.0 * sag), 0.0, 1.0)
-    peak = za + (zb - za) * tp + 4.0 * sag * tp * (1.0 - tp)
+    reach, _ = _farthest(za, zm, zb, sign)
     # an end within the on-plane tolerance is on the plane for a float32 slicer (and for the cut):
     # the edge touches it there (a face undulating about a plane within micrometres is left alone)
     gap = np.minimum(np.abs(z[a[cand]] - plane), np.abs(z[b[cand]] - plane))
-    near = np.flatnonzero(ok & (gap > ON_PLANE_TOL_MM) & (-sign * (peak - plane) >= -0.25 * np.abs(sag)))
-    found: list[tuple[int, np.ndarray]] = []  # (candidate, exact point beyond the plane)
+    near = np.flatnonzero(ok & (gap > ON_PLANE_TOL_MM) & (reach + sign * plane >= -0.25 * np.abs(sag)))
+    # an inner edge's profile looked at again at its quarter points (one batch per face) before its
+    # exact extreme is sought: kept if the parabola of either half reaches as near the plane (an
+    # edge crossing planes is long: the soap box's parabolas kept ~250 edges, 12 of them grazed)
+    looked = near[inner[near]]
+    looked = looked[np.argsort(face[looked], kind="stable")]
+    for g in np.split(looked, np.flatnonzero(np.diff(face[looked])) + 1) if len(looked) else []:
+        fe = mesh.faces[int(face[g[0]])]
+        quarters = np.concatenate([0.75 * uva[g] + 0.25 * uvb[g], 0.25 * uva[g] + 0.75 * uvb[g]])
+        q1, q3 = np.split(_surface(fe, quarters)[:, 2], 2)
+        keep = np.zeros(len(g), dtype=bool)
+        for z0, zq, z1 in ((za[g], q1, zm[g]), (zm[g], q3, zb[g])):
+            half_reach, half_sag = _farthest(z0, zq, z1, sign[g])
+            keep |= half_reach + sign[g] * plane[g] >= -0.25 * half_sag
+        ok[g[~keep]] = False
+    near = near[ok[near]]
+    found: list[tuple[int, np.ndarray, np.ndarray]] = []  # (candidate, exact point, unit normal)
     for c in near.tolist():
         sg = float(sign[c])
         if on_brep[c]:
@@ -226,28 +248,65 @@ def _grazed_edges(
             ev = mesh.edges[ei]
             s_x = ev.height_extreme(lo_s, hi_s, sg)
             x = (s_x - lo_s) / (hi_s - lo_s) if hi_s > lo_s else 0.0
-            p = np.array(ev.point(s_x))
+            p, normal = np.array(ev.point(s_x)), np.full(3, np.nan)
         else:
             fe = mesh.faces[int(face[c])]
             (ua, va), (du, dv) = uva[c].tolist(), (uvb[c] - uva[c]).tolist()
             x = fe.height_extreme_on_uv_segment(ua, va, ua + du, va + dv, sg)
-            p = np.array(fe.point(ua + x * du, va + x * dv))
+            p, normal = fe.point_and_normal(ua + x * du, va + x * dv)
         # strictly inside (else the profile is monotone: a projected end beyond the plane, an edge
         # off its face) and beyond the plane
         if _END_MARGIN < x < 1.0 - _END_MARGIN and -sg * (p[2] - plane[c]) > depth[plane_j[c]]:
-            found.append((c, p))
+            found.append((c, p, normal))
     if not found:
         return {}
-    c = np.array([c for c, _ in found])
-    pts = np.array([p for _, p in found])
+    c = np.array([c for c, _, _ in found])
+    pts = np.array([p for _, p, _ in found])
+    normals = np.array([n for _, _, n in found])
     na, nb = a[cand[c]], b[cand[c]]
-    # near the edge (a point elsewhere: a profile not along the edge)
-    close = point_segment_distance(pts, mesh.xyz[na], mesh.xyz[nb]) <= band
+    close = _along_edge(pts, normals, mesh.xyz[na], mesh.xyz[nb], band)
     return {
         (int(min(i, j)), int(max(i, j))): p
         for i, j, p, ok in zip(na.tolist(), nb.tolist(), pts, close.tolist(), strict=True)
         if ok
     }
+
+
+def _farthest(
+    z0: np.ndarray, zm: np.ndarray, z1: np.ndarray, sign: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The largest ``-sign * z`` of the parabola through heights ``z0``, ``zm``, ``z1`` at 0, 1/2 and
+    1 over [0, 1], and the size of its sag (``zm`` off the chord)."""
+    sag = zm - 0.5 * (z0 + z1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tp = np.clip(0.5 + (z1 - z0) / (8.0 * sag), 0.0, 1.0)
+    vertex = z0 + (z1 - z0) * tp + 4.0 * sag * tp * (1.0 - tp)
+    ends = np.maximum(-sign * z0, -sign * z1)
+    return np.where(-sign * sag > 0.0, -sign * vertex, ends), np.abs(sag)
+
+
+def _along_edge(
+    pts: np.ndarray, normals: np.ndarray, a: np.ndarray, b: np.ndarray, band: float
+) -> np.ndarray:
+    """Which split points ``pts`` belong to the edges a-b they were found along (else the profile
+    was not along the edge). A point on a B-rep edge's curve (normal NaN): within ``band`` of the
+    edge, as BRepMesh's polygon follows the curve. A point inside a face: within ``band`` of the
+    edge across the surface (the profile of a (u, v) segment runs along the mesh edge only where
+    the parametrisation is even: on trj3_s1-al-214's flat B-spline wall, a long edge's profile
+    bowed 0.15 mm up within the wall, a point above its plane where the wall's section is the
+    mesh's own); off it along the surface's normal up to ``_CLOSE_REL`` times the edge's length,
+    the sag of a 90-degree arc (BRepMesh's triangles can stray far past its deflection:
+    trj7_b1-ec-214's over a ridge, 0.24 mm below it along an 8.5 mm edge at a deflection of
+    0.02 mm)."""
+    ab = b - a
+    t = np.clip(chord_position(pts, a, b), 0.0, 1.0)
+    off = pts - (a + t[:, None] * ab)
+    dist = np.linalg.norm(off, axis=1)
+    inner = np.isfinite(normals).all(axis=1)
+    across = np.abs((off * np.where(inner[:, None], normals, 0.0)).sum(axis=1))
+    tangential = np.sqrt(np.maximum(dist**2 - across**2, 0.0))
+    sag = np.maximum(band, _CLOSE_REL * np.linalg.norm(ab, axis=1))
+    return np.where(inner, (tangential <= band) & (dist <= sag), dist <= band)
 
 
 def _surface(fe, uv: np.ndarray) -> np.ndarray:

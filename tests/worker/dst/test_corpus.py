@@ -93,8 +93,8 @@ REFERENCE_GAPS: dict[str, str] = {}
 # the largest pocket, mm): the report names it. (bug27453 had 3500 points within 0.24 mm at z = 37.1
 # and 36.9, pockets of 0.0045-0.007 mm^2, until its topology meshes' pole corners took their
 # triangles' own u in session 38: ``topomesh._wedge_poles``. trj7 was named at z = 56.9 until session
-# 44, where two faces touch along x = 155.6143 mm and the section runs along that line twice, its
-# passes 1e-9 mm apart: no crossing since ``REFERENCE_TOUCH_MM``.)
+# 44, where the section ran along x = 155.6143 mm twice, its passes 1e-9 mm apart: no crossing since
+# ``REFERENCE_TOUCH_MM``; that was the reference zigzagging across a ridge, one loop since session 52.)
 KNOWN_REFERENCE_FAULTS: dict[str, float] = {}
 
 
@@ -266,8 +266,7 @@ def test_corpus_file(path: Path, tmp_path):
 def _assert_closed_as_an_stl_reader_reads_it(mesh) -> None:
     """The STL's corners, equal float32 points merged as a slicer merges them: no facet of zero area
     (a repeated corner) and a closed 2-manifold, except where the build warns that rings touch
-    within the float32 rounding (trj7 at z = 56.9, where its ring zigzags across a ridge, and six
-    other planes; trj3_s1-al, whose five solids touch): there it says how many edges of four triangles and facets of zero
+    within the float32 rounding (trj7 at six planes; trj3_s1-al, whose five solids touch): there it says how many edges of four triangles and facets of zero
     area a slicer gets, and those are the counts. No open edge either way."""
     from worker.dst.meshops import repeated_corner
     from worker.dst.stl_io import merge_equal_vertices
@@ -1382,23 +1381,17 @@ def test_the_baselines_of_a_file_the_mesher_leaves_with_a_hole_are_of_its_repair
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    strict=True,
-    reason="open since session 51: the topology mesh's triangles across the ridge are cut across it "
-    "(the DST ring: 3 loops, 2,960 mm, where OCCT's section is one loop of 141.7 mm)",
-)
 def test_a_topology_edge_crossing_lower_planes_is_split_where_it_grazes_the_next():
     """trj7_b1-ec-214 as read, its top plane (z = 56.9 above the bed, 0.1 mm under a ridge of face
     42 that stands between two level lines 4.77 mm apart): BRepMesh's triangles there run across
     the ridge, 0.24 mm below it at a deflection of 0.02 mm, their edges from 0.47 mm below the
-    plane to 0.005 mm below it, crossing the planes below. ``split_grazed_edges`` looks only at
-    edges crossing no plane, so the mesh's cut joins the ridge's two sides: the DST ring and the
-    report's reference zigzag from one level line to the other (DST's cut 2,960 mm, the
+    plane to 0.005 mm below it, crossing the planes below. ``split_grazed_edges`` looked only at
+    edges crossing no plane, so the mesh's cut joined the ridge's two sides: the DST ring and the
+    report's reference zigzagged from one level line to the other (DST's cut 2,960 mm, the
     reference's 1,874 mm in three loops), where OCCT's own section is one loop (141.7 mm: the two
-    lines and the ridge's ends). Checking edges that cross planes too, for the next plane beyond
-    their ends (split points up to a quarter of the edge's length off it), mends this plane (one
-    loop of 141.74 mm in both), but gave trj3_s1-al-214 at z = 70.5 a zero-width fifth loop along
-    x = -144.651, a face where two of its solids touch: not in yet."""
+    lines and the ridge's ends). Edges crossing planes are now checked too, for the next plane
+    beyond their ends, with split points up to a quarter of the edge's length off it along the
+    surface's normal (and within the band across it: ``test_ridges``): one loop in both."""
     from OCP.BRepAlgoAPI import BRepAlgoAPI_Section
     from OCP.BRepGProp import BRepGProp
     from OCP.gp import gp_Dir, gp_Pln, gp_Pnt

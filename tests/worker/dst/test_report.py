@@ -922,10 +922,11 @@ def test_a_dst_contour_crossing_itself_across_a_neck_of_the_section_is_told_apar
 def test_a_reference_out_of_order_is_named_and_a_section_doubled_along_a_line_is_not():
     """The report warns where its exact reference crosses itself round more than a chord-budget
     square at a plane holding the meshes' largest deviations (points joined out of order). A
-    section doubled along a line, where two faces of the part touch (trj7_b1-ec-214 at z = 56.9:
-    two passes along x = 155.6143 mm, 1e-9 mm apart), is joined in order: its passes cross by no
-    more than a nanometre (``REFERENCE_TOUCH_MM``), and it is not named (it was, with a 94 mm^2
-    pocket: a whole lobe)."""
+    section doubled along a line, as where two faces of the part touch, is joined in order: its
+    passes cross by no more than a nanometre (``REFERENCE_TOUCH_MM``), and it is not named.
+    (trj7_b1-ec-214 at z = 56.9 was named with a 94 mm^2 pocket, a whole lobe: two passes along
+    x = 155.6143 mm, 1e-9 mm apart. That line is a ridge's level line, and the reference ran along
+    it twice because it zigzagged across the ridge, mended in session 52 by the grazed-edge splits.)"""
     from types import SimpleNamespace
 
     from worker.dst.cuts import loop_self_crossings

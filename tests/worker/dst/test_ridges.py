@@ -240,3 +240,50 @@ def test_a_new_node_on_a_b_rep_edge_splits_the_mesh_edge_there(tmp_path, nurbs):
         fe = mesh.faces[int(mesh.tri_face[t])]
         for node, (u, v) in zip(mesh.tris[t].tolist(), mesh.tri_uv[t].tolist(), strict=True):
             assert np.linalg.norm(np.subtract(fe.point(u, v), mesh.xyz[node])) < 1e-6
+
+
+def test_a_split_point_off_its_edge_across_the_surface_is_not_taken_for_a_graze():
+    """A split point belongs to its edge when it lies off it along the surface's normal (the surface
+    rising over the chord: up to a quarter of the edge's length, a 90-degree arc's sag), not when it
+    lies off it across the surface by more than the band: on a flat wall with an uneven (u, v)
+    parametrisation the profile of a (u, v) segment bows within the wall (trj3_s1-al-214: a point
+    0.15 mm above a long edge, where the mesh's section of the wall is the exact one). A point on a
+    B-rep edge's curve (no normal) must lie within the band."""
+    from worker.dst.ridges import _along_edge
+
+    band = 0.04
+    a, b = np.array([[0.0, 0.0, 0.0]]), np.array([[0.0, 10.0, 0.0]])
+    wall, ridge, none = np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 0.0, 1.0]]), np.full((1, 3), np.nan)
+    cases = [
+        ((0.0, 5.0, 0.15), wall, False),  # up the wall from the edge: the parametrisation's bow
+        ((0.0, 5.0, 0.03), wall, True),  # within the band
+        ((0.1, 5.0, 0.0), wall, True),  # out of the wall: the surface over the chord
+        ((0.0, 5.0, 0.24), ridge, True),  # trj7's ridge, 0.24 mm over its 8.5 mm edge
+        ((0.0, 5.0, 2.6), ridge, False),  # beyond a quarter of the edge's length
+        ((0.0, 9.9, 2.4), ridge, True),  # off its end: measured from the nearest point of the edge
+        ((0.0, 5.0, 0.03), none, True),
+        ((0.0, 5.0, 0.24), none, False),
+    ]
+    for p, normal, expected in cases:
+        assert _along_edge(np.array([p]), normal, a, b, band).tolist() == [expected], (p, normal)
+
+
+def test_the_quarter_point_look_reaches_a_parabolas_extreme_exactly():
+    """``_farthest``: the largest ``-sign * z`` of the parabola through three heights at 0, 1/2, 1, and
+    its sag: the vertex where the parabola bulges that way inside [0, 1], else the higher end."""
+    from worker.dst.ridges import _farthest
+
+    t = np.linspace(0.0, 1.0, 100_001)
+    for c2, c1, c0 in [
+        (-3.0, 2.0, 0.5),
+        (2.0, -1.0, 0.0),
+        (-1.0, 3.0, 0.0),
+        (0.0, 1.0, -2.0),
+        (4.0, -4.0, 1.0),
+    ]:
+        z = c2 * t**2 + c1 * t + c0
+        heights = [np.array([c2 * x**2 + c1 * x + c0]) for x in (0.0, 0.5, 1.0)]
+        for sign in (-1.0, 1.0):
+            reach, sag = _farthest(*heights, np.array([sign]))
+            assert reach[0] == pytest.approx((-sign * z).max(), abs=1e-9), (c2, c1, c0, sign)
+            assert sag[0] == pytest.approx(abs(c2) / 4.0)
