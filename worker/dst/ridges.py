@@ -291,22 +291,21 @@ def _along_edge(
     """Which split points ``pts`` belong to the edges a-b they were found along (else the profile
     was not along the edge). A point on a B-rep edge's curve (normal NaN): within ``band`` of the
     edge, as BRepMesh's polygon follows the curve. A point inside a face: within ``band`` of the
-    edge across the surface (the profile of a (u, v) segment runs along the mesh edge only where
-    the parametrisation is even: on trj3_s1-al-214's flat B-spline wall, a long edge's profile
-    bowed 0.15 mm up within the wall, a point above its plane where the wall's section is the
-    mesh's own); off it along the surface's normal up to ``_CLOSE_REL`` times the edge's length,
-    the sag of a 90-degree arc (BRepMesh's triangles can stray far past its deflection:
-    trj7_b1-ec-214's over a ridge, 0.24 mm below it along an 8.5 mm edge at a deflection of
-    0.02 mm)."""
+    edge in the surface's tangent plane (the profile of a (u, v) segment runs along the mesh edge
+    only where the parametrisation is even: on trj3_s1-al-214's flat B-spline wall, a long edge's
+    profile bowed 0.15 mm up within the wall, a point above its plane where the wall's section is
+    the mesh's own), and no farther than ``_CLOSE_REL`` times the edge's length in all, the sag of
+    a 90-degree arc (BRepMesh's triangles can stray far past its deflection: trj7_b1-ec-214's over
+    a ridge, 0.24 mm below it along an 8.5 mm edge at a deflection of 0.02 mm)."""
     ab = b - a
     t = np.clip(chord_position(pts, a, b), 0.0, 1.0)
     off = pts - (a + t[:, None] * ab)
     dist = np.linalg.norm(off, axis=1)
     inner = np.isfinite(normals).all(axis=1)
-    across = np.abs((off * np.where(inner[:, None], normals, 0.0)).sum(axis=1))
-    tangential = np.sqrt(np.maximum(dist**2 - across**2, 0.0))
+    out_of_surface = np.abs((off * np.where(inner[:, None], normals, 0.0)).sum(axis=1))
+    in_surface = np.sqrt(np.maximum(dist**2 - out_of_surface**2, 0.0))
     sag = np.maximum(band, _CLOSE_REL * np.linalg.norm(ab, axis=1))
-    return np.where(inner, (tangential <= band) & (dist <= sag), dist <= band)
+    return np.where(inner, (in_surface <= band) & (dist <= sag), dist <= band)
 
 
 def _surface(fe, uv: np.ndarray) -> np.ndarray:
