@@ -287,3 +287,49 @@ def test_the_quarter_point_look_reaches_a_parabolas_extreme_exactly():
             reach, sag = _farthest(*heights, np.array([sign]))
             assert reach[0] == pytest.approx((-sign * z).max(), abs=1e-9), (c2, c1, c0, sign)
             assert sag[0] == pytest.approx(abs(c2) / 4.0)
+
+
+def test_an_edge_crossing_a_plane_is_split_where_the_surface_passes_the_next_one(tmp_path):
+    """An edge whose ends lie either side of one plane, while the surface along it rises past the next
+    plane beyond its higher end (trj7_b1-ec-214's top plane: edges across a ridge crossing the planes
+    below): the mesh's section at that plane misses the surface's part beyond it. Planes chosen on
+    the turned torus's mesh for its inner edge that bulges most over its higher end: that edge is split
+    at the exact extreme of the surface along it (on the torus, beyond the plane), and the mesh is
+    still a closed, consistently oriented manifold."""
+    from worker.dst.ridges import BAND_DEFLECTIONS, split_grazed_edges
+
+    mesh = _torus_mesh(tmp_path)
+    fe = mesh.faces[0]
+    brep = {(min(a, b), max(a, b)) for a, b in mesh.edge_of}
+    best = None  # (rise over the higher end, a, b, exact highest point)
+    for t in range(len(mesh.tris)):
+        for i in range(3):
+            a, b = int(mesh.tris[t, i]), int(mesh.tris[t, (i + 1) % 3])
+            za, zb = mesh.xyz[a, 2], mesh.xyz[b, 2]
+            if a > b or (a, b) in brep or abs(za - zb) < 1e-3:
+                continue
+            (ua, va), (ub, vb) = mesh.tri_uv[t, i], mesh.tri_uv[t, (i + 1) % 3]
+            x = fe.height_extreme_on_uv_segment(ua, va, ub, vb, -1.0)
+            top = np.array(fe.point(ua + x * (ub - ua), va + x * (vb - va)))
+            rise = top[2] - max(za, zb)
+            if 0.05 < x < 0.95 and (best is None or rise > best[0]):
+                best = (rise, a, b, top)
+    rise, a, b, top = best
+    assert 1e-4 < rise < BAND_DEFLECTIONS * mesh.deflection, rise
+    lo, hi = sorted((mesh.xyz[a, 2], mesh.xyz[b, 2]))
+    planes = np.array([0.5 * (lo + hi), hi + 0.5 * rise])  # the edge crosses the first, not the second
+    n0 = mesh.n_nodes
+    split_grazed_edges(mesh, planes)
+    edges = {
+        tuple(sorted(e))
+        for e in np.vstack([mesh.tris[:, [0, 1]], mesh.tris[:, [1, 2]], mesh.tris[:, [2, 0]]]).tolist()
+    }
+    assert (a, b) not in edges
+    (new,) = [
+        k
+        for k in range(n0, mesh.n_nodes)
+        if (min(a, k), max(a, k)) in edges and (min(b, k), max(b, k)) in edges
+    ]
+    assert np.linalg.norm(mesh.xyz[new] - top) < 1e-6
+    assert _torus_distance(mesh.xyz[new][None])[0] < 1e-9 and mesh.xyz[new, 2] > planes[1]
+    assert edge_defects(mesh.tris, mesh.n_nodes) == (0, 0)
