@@ -92,10 +92,15 @@ def chord_position(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->i", p - a, ab) / np.where(denom > 0, denom, 1.0)
 
 
+def point_segment_offset(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise vector from the nearest point of each segment ``a``-``b`` to its point ``p``; all (n, 3)."""
+    t = np.clip(chord_position(p, a, b), 0.0, 1.0)
+    return p - (a + t[:, None] * (b - a))
+
+
 def point_segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise distance (mm) from points ``p`` to segments ``a``-``b``; all (n, 3)."""
-    t = np.clip(chord_position(p, a, b), 0.0, 1.0)
-    return np.linalg.norm(p - (a + t[:, None] * (b - a)), axis=1)
+    return np.linalg.norm(point_segment_offset(p, a, b), axis=1)
 
 
 def end_segments(

@@ -29,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 from OCP.GeomAbs import GeomAbs_Line, GeomAbs_Plane
 
-from worker.dst.chords import chord_position
+from worker.dst.chords import point_segment_offset
 from worker.dst.constants import ON_PLANE_TOL_MM
 from worker.dst.lowest import face_optimum_from_nodes, snap_local_extremes
 from worker.dst.splits import curve_span, edge_extreme_between, split_edges
@@ -155,14 +155,15 @@ def _grazed_edges(
     # (an edge may cross planes between its ends and still graze the next one: trj7_b1-ec-214's
     # long triangles over a ridge 0.1 mm above its top plane, their edges from 0.47 mm below it
     # to 0.005 mm below, the ridge between: the mesh's cut joined the ridge's two sides)
+    lo_at = np.searchsorted(planes, lo, side="left")  # the first plane at or above the lower end
     k_up = np.searchsorted(planes, hi, side="right")
-    k_down = np.searchsorted(planes, lo, side="left") - 1
+    k_down = lo_at - 1
     last = len(planes) - 1
     up = np.where(k_up <= last, planes[np.minimum(k_up, last)], np.inf)
     down = np.where(k_down >= 0, planes[np.maximum(k_down, 0)], -np.inf)
     band = BAND_DEFLECTIONS * mesh.deflection
     # a plane beyond an end within the band (none through an end: the edge touches it there)
-    through = np.searchsorted(planes, lo, side="left") < np.searchsorted(planes, lo, side="right")
+    through = lo_at < np.searchsorted(planes, lo, side="right")
     through |= np.searchsorted(planes, hi, side="left") < k_up
     cand = np.flatnonzero(~through & ((up - hi <= band) | (lo - down <= band)))
     if not len(cand):
@@ -298,14 +299,12 @@ def _along_edge(
     the mesh's own), and no farther than ``_CLOSE_REL`` times the edge's length in all, the sag of
     a 90-degree arc (BRepMesh's triangles can stray far past its deflection: trj7_b1-ec-214's over
     a ridge, 0.24 mm below it along an 8.5 mm edge at a deflection of 0.02 mm)."""
-    ab = b - a
-    t = np.clip(chord_position(pts, a, b), 0.0, 1.0)
-    off = pts - (a + t[:, None] * ab)
+    off = point_segment_offset(pts, a, b)
     dist = np.linalg.norm(off, axis=1)
     inner = np.isfinite(normals).all(axis=1)
     out_of_surface = np.abs((off * np.where(inner[:, None], normals, 0.0)).sum(axis=1))
     in_surface = np.sqrt(np.maximum(dist**2 - out_of_surface**2, 0.0))
-    sag = np.maximum(band, _CLOSE_REL * np.linalg.norm(ab, axis=1))
+    sag = np.maximum(band, _CLOSE_REL * np.linalg.norm(b - a, axis=1))
     return np.where(inner, (in_surface <= band) & (dist <= sag), dist <= band)
 
 
