@@ -776,7 +776,7 @@ def test_a_loop_all_at_one_vertex_keeps_every_crossing():
 
 
 def test_surface_points_are_the_same_whether_a_batch_or_occt_evaluates_them(tmp_path):
-    """``RunRefiner._d1`` evaluates a face's points with its vectorised evaluator in batches of at
+    """``BatchedSolves._d1`` evaluates a face's points with its vectorised evaluator in batches of at
     least ``BATCH_MIN_D1`` (``BATCH_MIN_P`` without derivatives) and one by one with OCCT's D1 below
     that (a call of the evaluator costs as much as several points of OCCT's). Either way the rows
     are OCCT's point and derivatives, on a B-spline hemisphere and its flat bottom, mixed in one
@@ -784,7 +784,7 @@ def test_surface_points_are_the_same_whether_a_batch_or_occt_evaluates_them(tmp_
     from OCP.gp import gp_Pnt, gp_Vec
 
     from tests.conftest import build_part, write_step
-    from worker.dst.refine import BATCH_MIN_D1, BATCH_MIN_P
+    from worker.dst.solves import BATCH_MIN_D1, BATCH_MIN_P
 
     mesh = _topomesh_of(write_step(build_part("hemisphere", radius=20.0), tmp_path / "h.step"))
     topo = cut_topology(mesh, np.array([5.0]), on_plane_tol=C.ON_PLANE_TOL_MM, noise_tol=np.zeros(1))
@@ -873,7 +873,7 @@ def test_the_vertex_pool_keeps_faces_and_parameters_as_it_grows():
 def test_many_points_placed_on_their_faces_at_once_land_where_each_alone_does(
     tmp_path, monkeypatch, kind, nurbs
 ):
-    """``RunRefiner._uv_near`` batches ``FaceEval.uv_near``'s Gauss-Newton over many points of mixed
+    """``BatchedSolves._uv_near`` batches ``FaceEval.uv_near``'s Gauss-Newton over many points of mixed
     faces (a B-spline hemisphere and its flat bottom, an analytic sphere with its pole, a torus
     periodic both ways, a tilted tube's cylinders and planar ends): each point lands where
     ``uv_near`` puts it alone, on the seed's branch of a periodic surface: points on the surface,
