@@ -73,12 +73,13 @@ def zero_end_peak(t: np.ndarray, f: np.ndarray) -> np.ndarray:
         g = f / (t * (1.0 - t))
         lag = []  # the Lagrange basis on the samples, on the grid
         for i in range(k):
-            num, den = 1.0, 1.0
+            num: np.ndarray | float = 1.0
+            den: np.ndarray | float = 1.0
             for j in range(k):
                 if j != i:
                     num = num * (x - t[:, j, None])
                     den = den * (t[:, i] - t[:, j])
-            lag.append(num / den[:, None])
+            lag.append(num / np.asarray(den)[:, None])
         value = (x * (1.0 - x) * sum(g[:, i, None] * lag[i] for i in range(k))).max(axis=1)
     spaced = (np.diff(t, axis=1) > 1e-9).all(axis=1)
     good = spaced & (t[:, 0] > _QUARTIC_END) & (t[:, -1] < 1.0 - _QUARTIC_END) & np.isfinite(value)

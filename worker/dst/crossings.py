@@ -15,13 +15,14 @@ from worker.dst.errors import TessellationError
 from worker.dst.exact import ExactFailure, FaceEval, WalkPassed
 from worker.dst.face_limits import TRIM_TOL_MM
 from worker.dst.runs import SUSPECT_DEFLECTIONS
+from worker.dst.sampler_state import SamplerState
 
 # steps (in topology deflections) of a walk along a section curve: short enough that the pull back
 # onto the plane cannot reach another branch of the section
 WALK_STEP_DEFLECTIONS = 5.0
 
 
-class Crossings:
+class Crossings(SamplerState):
     """``RingSampler``'s exact vertices at topology nodes and crossings (a mixin)."""
 
     # --- single exact vertices ---------------------------------------------------------------------
@@ -208,7 +209,7 @@ class Crossings:
         Raises ExactFailure if neither brackets it."""
         fe = self.mesh.faces[face]
         try:
-            return fe.root_on_uv_segment(*uva, *uvb, zc)
+            return fe.root_on_uv_segment(uva[0], uva[1], uvb[0], uvb[1], zc)
         except ExactFailure:
             if not (self._on_brep_edge[a] or self._on_brep_edge[b]):
                 raise
@@ -216,7 +217,7 @@ class Crossings:
             fe.uv_near(tuple(self.mesh.xyz[n]), tuple(uv)) if self._on_brep_edge[n] else tuple(uv)
             for n, uv in ((a, uva), (b, uvb))
         ]
-        return fe.root_on_uv_segment(*own[0], *own[1], zc)
+        return fe.root_on_uv_segment(own[0][0], own[0][1], own[1][0], own[1][1], zc)
 
     def _newton_from_crossing(self, t: int, a: int, b: int, uva, uvb, zc: float) -> np.ndarray | None:
         """Newton (the smallest 3D move onto ``z = zc``) from where edge a-b of triangle ``t``

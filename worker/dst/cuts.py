@@ -176,7 +176,8 @@ def self_crossings(cut: MeshCut, points: bool = False) -> list[tuple]:
     for s, t in zip(i[same].tolist(), k[same].tolist(), strict=True):
         best = (np.inf, np.inf)
         for first, second in ((s, t), (t, s)):  # from the end of one to the start of the other
-            path, v, end = [], int(node[first, 1]), int(node[second, 0])
+            path: list[int] = []
+            v, end = int(node[first, 1]), int(node[second, 0])
             while v != end and v >= 0 and len(path) <= n:
                 path.append(v)
                 v = nxt.get(v, -1)

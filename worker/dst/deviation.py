@@ -80,13 +80,13 @@ def span_curvatures(
     return np.column_stack([start, end])
 
 
-def _offset(t: np.ndarray, k0: np.ndarray, k1: np.ndarray, length2: np.ndarray) -> np.ndarray:
+def _offset(t: np.ndarray, k0: np.ndarray, k1: np.ndarray, length2: np.ndarray | float) -> np.ndarray:
     """Offset along the span's left normal, at chord parameter t, of the curve whose curvature goes
     linearly from k0 to k1 along the span (y'' = -kappa L^2, y(0) = y(1) = 0)."""
     return length2 * t * (k0 * (t * (0.5 - t / 6.0) - 1.0 / 3.0) + k1 * (t * t - 1.0) / 6.0)
 
 
-def _slope(t: np.ndarray, k0: np.ndarray, k1: np.ndarray, length2: np.ndarray) -> np.ndarray:
+def _slope(t: np.ndarray, k0: np.ndarray, k1: np.ndarray, length2: np.ndarray | float) -> np.ndarray:
     return length2 * (k0 * (t - t * t / 2.0 - 1.0 / 3.0) + k1 * (t * t / 2.0 - 1.0 / 6.0))
 
 
@@ -307,10 +307,11 @@ class SegmentSet:
         # the first search bounded: it visits fewer tree nodes (~8% less measuring time), and its
         # answer is sure for every point within _FIRST_RADIUS_MM of the segments
         bound = _FIRST_RADIUS_MM + reach
-        n = self._tree.n
+        tree = self._index()  # built already: ``nearest`` indexed the segments first
+        n = tree.n
         while len(todo):
             k = min(k, n)
-            dk, ik = self._tree.query(q[todo], k=k, workers=workers, distance_upper_bound=bound)
+            dk, ik = tree.query(q[todo], k=k, workers=workers, distance_upper_bound=bound)
             dk, ik = dk.reshape(len(todo), k), ik.reshape(len(todo), k)
             found = ik < n  # fewer than k points within the bound: the others come back as index n
             owner = self.owner[np.where(found, ik, 0)]
@@ -491,6 +492,7 @@ def _reference_to_cut(
     then searched, which gives a lower bound of the plane's largest distance; a span whose bounds (plus ``span_max``'s cap) stay
     below it cannot reach it, and only the others are searched: their ends, then their midpoints
     where the peak could still be the plane's largest."""
+    assert ref.nxt is not None and ref.loop_first is not None  # closed loops of consecutive spans
     n_ref = len(ref.seg)
     sel = cut_has[ref.seg_plane]  # elsewhere the distances are undefined (NaN in ``compare``)
     d0 = np.full(n_ref, np.inf)
@@ -554,6 +556,7 @@ def _covering_pairs(ref: SegmentSet, ends_near: np.ndarray) -> tuple[np.ndarray,
     the spans nearest to its two ends ``ends_near`` ((m, 2), -1 for none), along their loop the
     shorter way and one more at either end; a segment whose ends are nearest to different loops,
     or to spans more than ``_MAX_COVER`` vertices apart, with the vertices of those two spans."""
+    assert ref.nxt is not None and ref.loop_first is not None and ref.loop_size is not None
     ra, rb = ends_near[:, 0], ends_near[:, 1]
     ok = (ra >= 0) & (rb >= 0)
     ra, rb, seg = ra[ok], rb[ok], np.flatnonzero(ok)

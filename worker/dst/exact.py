@@ -86,6 +86,7 @@ class FaceEval:
         "_sas",
         "_fclass",
         "_batch",
+        "_batch_built",
         "_poles",
     )
 
@@ -105,21 +106,22 @@ class FaceEval:
         # face's orientation)
         self.outward = -1.0 if self.face.Orientation() == TopAbs_REVERSED else 1.0
         self._p, self._du, self._dv = gp_Pnt(), gp_Vec(), gp_Vec()
-        self._sas = None
+        self._sas: ShapeAnalysis_Surface | None = None
         self._fclass: dict[float, IntTools_FClass2d] = {}
-        self._batch: Evaluator | None | bool = False  # not built yet
+        self._batch: Evaluator | None = None
+        self._batch_built = False
         self._poles: dict[tuple[int, float], bool] = {}
 
     @property
     def batch(self) -> Evaluator | None:
         """The surface's vectorised evaluator (``analytic.evaluator``: None for a kind it does not
         cover), built on first use and kept."""
-        if self._batch is False:
-            self._batch = evaluator(self.ad)
+        if not self._batch_built:
+            self._batch, self._batch_built = evaluator(self.ad), True
         return self._batch
 
     def uv_near(
-        self, xyz: tuple[float, float, float], seed: tuple[float, float], *, foot: bool = False
+        self, xyz: Sequence[float], seed: Sequence[float], *, foot: bool = False
     ) -> tuple[float, float]:
         """(u, v) of a point on the surface, on the parameter branch nearest ``seed`` (periodic surfaces).
 
@@ -140,7 +142,7 @@ class FaceEval:
         unbounded), within which ``project`` finds its points."""
         return tuple(BRep_Tool.Surface_s(self.face).Bounds())
 
-    def project(self, xyz: tuple[float, float, float], seed: tuple[float, float]) -> tuple[float, float]:
+    def project(self, xyz: Sequence[float], seed: Sequence[float]) -> tuple[float, float]:
         """(u, v) of the point's projection on the surface (``NextValueOfUV`` from ``seed``), on the
         parameter branch nearest the seed: ``uv_near``'s way where Newton does not get there."""
         if self._sas is None:
@@ -153,7 +155,7 @@ class FaceEval:
         return self.same_branch((p.X(), p.Y()), seed)
 
     def _newton_uv(
-        self, xyz: tuple[float, float, float], seed: tuple[float, float], foot: bool = False
+        self, xyz: Sequence[float], seed: Sequence[float], foot: bool = False
     ) -> tuple[float, float] | None:
         """(u, v) where the surface passes within ``UV_NEAR_TOL_MM`` of ``xyz``, by Gauss-Newton on
         the distance from ``seed`` (one step more once there: the projection refines to rounding).
@@ -216,7 +218,7 @@ class FaceEval:
             return self.ad.UPeriod() if self.ad.IsUPeriodic() else 0.0
         return self.ad.VPeriod() if self.ad.IsVPeriodic() else 0.0
 
-    def same_branch(self, uv: tuple[float, float], near: tuple[float, float]) -> tuple[float, float]:
+    def same_branch(self, uv: Sequence[float], near: Sequence[float]) -> tuple[float, float]:
         """``uv`` moved by whole periods of a periodic surface to the branch nearest ``near``."""
         out = [float(uv[0]), float(uv[1])]
         for axis in (0, 1):
@@ -376,9 +378,10 @@ class FaceEval:
                 return p.X(), p.Y(), u, v
             h = math.copysign(min(abs(along), step), along) / speed
             x0, y0 = p.X(), p.Y()
-            u, v = self._onto_level(u + su * h, v + sv * h, c)
-            if u is None:
+            nu, nv = self._onto_level(u + su * h, v + sv * h, c)
+            if nu is None or nv is None:
                 raise ExactFailure("the walk lost the section curve (or met a flat spot)")
+            u, v = nu, nv
             if not (self.u0 <= u <= self.u1 and self.v0 <= v <= self.v1):
                 raise ExactFailure("the walk left the surface")
             if len(far):
@@ -461,12 +464,13 @@ class FaceEval:
                 su, sv = -su, -sv
             while True:
                 un, vn = self._onto_level(u + su * h / speed, v + sv * h / speed, c)
-                dn = self.section_direction(un, vn) if un is not None else None
+                dn = self.section_direction(un, vn) if un is not None and vn is not None else None
                 if dn is not None and dn[0] * d[0] + dn[1] * d[1] > TRACE_MAX_TURN_COS:
                     break
                 h *= 0.5
                 if h < TRACE_MIN_STEP_MM:
                     raise ExactFailure("a cusp on the trace")
+            assert un is not None and vn is not None and dn is not None  # (a direction: a point)
             if (box_u and not self.u0 <= un <= self.u1) or (box_v and not self.v0 <= vn <= self.v1):
                 raise ExactFailure("the trace left the face (its parameter range)")
             if not self.contains(un, vn, tol=1e-6):

@@ -21,6 +21,7 @@ from OCP.gp import gp_Pnt, gp_Vec
 from worker.dst.chords import CHORD_FILL, chord_position, point_segment_distance
 from worker.dst.constants import LEVEL_TOL_MM, NEWTON_MAX_ITER
 from worker.dst.runs import BRIDGE_POINT, Run
+from worker.dst.sampler_state import SamplerState
 
 TRIM_TOL_MM = 1e-6
 TRIM_ENTRY_TOL_MM = 1e-5  # where a section crosses its face's trim: found to this (``_into_trims``)
@@ -42,7 +43,7 @@ def beyond_box(uv: np.ndarray, box: np.ndarray, checked: np.ndarray) -> tuple[np
     return (uv < box[:, [0, 2]] - tol) & checked, (uv > box[:, [1, 3]] + tol) & checked
 
 
-class FaceLimits:
+class FaceLimits(SamplerState):
     """``RunRefiner``'s handling of face limits (a mixin)."""
 
     def _surface_kinks(self, f: int) -> tuple[np.ndarray, np.ndarray]:
@@ -138,7 +139,7 @@ class FaceLimits:
                     # beyond the face's trim the line is crossed on the surface's extension, not on
                     # the B-rep (past a corner of the run: tangent_features turned (-178.1, 115.6,
                     # 106.9) had a corner 2.3 um off its faces at z = 9.9)
-                    if hit is not None and not ev.contains(*hit[0], tol=TRIM_TOL_MM):
+                    if hit is not None and not ev.contains(hit[0][0], hit[0][1], tol=TRIM_TOL_MM):
                         self.stats.outside_face_points += 1
                         hit = None
                     # The seed path crosses the line, but the exact curve between the run's exact
@@ -224,7 +225,9 @@ class FaceLimits:
             if not self.mesh.faces[run.face].is_pole(axis, bound):
                 continue
             hit = self._through_pole(run, axis, bound, uv[k], xyz[k])
-            if hit is None or not self.mesh.faces[run.face].contains(*hit[0].tolist(), tol=TRIM_TOL_MM):
+            if hit is None or not self.mesh.faces[run.face].contains(
+                float(hit[0][0]), float(hit[0][1]), tol=TRIM_TOL_MM
+            ):
                 continue
             uv[k], xyz[k] = hit
             moved[m] = True
@@ -390,7 +393,7 @@ class FaceLimits:
             ):
                 if end not in corners:
                     continue
-                dropped = []
+                dropped: list[int] = []
                 for k in walk:
                     if vid[k] == -2:
                         continue

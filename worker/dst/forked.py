@@ -121,8 +121,16 @@ class Task:
         self.pid, self._fd = pid, r
 
     @property
-    def fileno(self) -> int | None:
+    def fileno(self) -> int:
+        """The pipe from the child (a forked task not collected yet)."""
+        assert self._fd is not None
         return self._fd
+
+    @property
+    def forked_pid(self) -> int:
+        """The child's process id (a forked task)."""
+        assert self.pid is not None
+        return self.pid
 
     def done(self) -> bool:
         """The result has been collected (or the task ran inline)."""
@@ -165,9 +173,9 @@ class Task:
         """Take what the child has written: without waiting, or (``block``) until at least one more
         message or its end."""
         while self._outcome is None:
-            if not block and not select.select([self._fd], [], [], 0)[0]:
+            if not block and not select.select([self.fileno], [], [], 0)[0]:
                 return
-            chunk = os.read(self._fd, _READ_BYTES)
+            chunk = os.read(self.fileno, _READ_BYTES)
             if not chunk:
                 self._ended()
                 return
@@ -186,13 +194,14 @@ class Task:
             kind, value = pickle.loads(self._buf[pos + _FRAME.size : end])
             pos, got = end, True
             if kind == _ITEM:  # its place in the spool file
+                assert self._spool is not None  # (a generator's task)
                 self._items.append(pickle.loads(_read_at(self._spool.fileno(), *value)))
             elif kind == _VALUE:
                 self._items.append(value)
             else:  # the last message: the child is exiting, reaped later, not waited for here
                 self._outcome = (kind == _RETURN, value)
                 self._close()  # (drops the buffer too)
-                _exiting.add(self.pid)
+                _exiting.add(self.forked_pid)
                 reap_exited()
                 return True
         del self._buf[:pos]
@@ -201,7 +210,7 @@ class Task:
     def _ended(self) -> None:
         """The pipe closed before the outcome came: the child died."""
         self._close()
-        _, status = os.waitpid(self.pid, 0)
+        _, status = os.waitpid(self.forked_pid, 0)
         how = (
             f"killed by signal {os.WTERMSIG(status)}"
             if os.WIFSIGNALED(status)

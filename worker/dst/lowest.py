@@ -100,7 +100,7 @@ def _extreme(meshes: list[TopoMesh], *, sign: float) -> tuple[int, Where, np.nda
         candidates: list[tuple[float, Where, np.ndarray]] = [
             (float(h[n0]), ("node", n0), mesh.xyz[n0].copy())
         ]
-        tri_mask = np.isin(mesh.tris, low_nodes).any(axis=1)
+        tri_mask = np.asarray(np.isin(mesh.tris, low_nodes).any(axis=1))
         for f in unique_ints(mesh.tri_face[tri_mask]).tolist():
             candidates.extend(_face_extreme(mesh, f, tri_mask, sign))
         edge_ids = {ei for (a, b), ei in mesh.edge_of.items() if a in low_set or b in low_set}
@@ -368,8 +368,8 @@ def _edge_node_optimum(mesh: TopoMesh, node: int, sign: float) -> np.ndarray | N
             spans = [(ev.s0, lo), (hi, ev.s1)]
         else:
             continue
-        for a, b in spans:
-            pt = np.array(ev.point(ev.height_extreme(a, b, sign)))
+        for sa, sb in spans:
+            pt = np.array(ev.point(ev.height_extreme(sa, sb, sign)))
             if best is None or sign * pt[2] < sign * best[2]:
                 best = pt
     return best

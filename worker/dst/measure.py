@@ -282,7 +282,7 @@ def plane_ranges(cost: np.ndarray, chunk: float) -> list[tuple[int, int]]:
     return list(zip(edges[:-1].tolist(), edges[1:].tolist(), strict=True))
 
 
-_SIDES = {0: None, 1: "above", -1: "below"}
+_SIDES: dict[int, Literal["above", "below"] | None] = {0: None, 1: "above", -1: "below"}
 
 
 def _num(x: float) -> float | None:

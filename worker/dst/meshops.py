@@ -123,7 +123,8 @@ def split_t_junctions(xyz: np.ndarray, tris: np.ndarray, tol: float) -> tuple[np
             splits[t] = (-1, [])  # two split edges: left as it is
             continue
         splits[t] = (j, ends[on][np.argsort(along[on])].tolist())
-    out, done = [], np.zeros(len(tris), dtype=bool)
+    out: list[tuple[int, int, int]] = []
+    done = np.zeros(len(tris), dtype=bool)
     for t, (j, inner) in splits.items():
         if j < 0:
             continue

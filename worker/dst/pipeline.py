@@ -256,7 +256,7 @@ def slice_part(
             # a ring folding back on itself within the float32 rounding: the fold merged away
             unfolded = unfold_float32(vertices, triangles, vertex_plane, planes.z32)
             u_volume = None if unfolded is None else _closed_volume(*unfolded[0][:2])
-            if u_volume is None:
+            if unfolded is None or u_volume is None:
                 warnings.append(
                     touching_contour_warning(w_triangles, w_plane, planes.z, collapsed)
                     if edge_defects(w_triangles, len(w_vertices))[1]

@@ -380,7 +380,7 @@ def occt_sections(
         section.Approximation(True)
         section.ComputePCurveOn1(True)
         section.Build()
-        pts = []
+        pts: list[tuple[float, float]] = []
         exp = TopExp_Explorer(section.Shape(), TopAbs_EDGE)
         while exp.More():
             curve = BRepAdaptor_Curve(TopoDS.Edge(exp.Current()))
@@ -429,10 +429,12 @@ def _reference_topomesh(
             unmeshed = last = exc
         except TessellationError as exc:
             last = exc
-    can_repair = unmeshed is not None and repair_precision is not None
-    healed = heal_wires(solid, repair_precision) if can_repair else None
+    healed = (
+        heal_wires(solid, repair_precision) if unmeshed is not None and repair_precision is not None else None
+    )
     if healed is None:
         if not finer:
+            assert last is not None  # (every deflection was tried: each failed)
             raise last
         return (*_first_that_works(mesh_of(solid), tuple(finer)), None)
     repaired, change = healed

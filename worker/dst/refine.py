@@ -237,6 +237,7 @@ class RunRefiner(FaceLimits, RunEnds, BatchedSolves):
                 bad = (bad | deep) & (length > 1e-9)
                 if halving:
                     over = np.flatnonzero(~bad & mid_ok & (sag > CHORD_FILL * e))
+                    assert halvable is not None  # (set where ``halving``)
                     if len(over):
                         mid_s = 0.5 * (sa[over] + sb[over])
                         kept, again = self._halves(
@@ -367,14 +368,14 @@ class RunRefiner(FaceLimits, RunEnds, BatchedSolves):
             known[run, end] = True
             a, b = end_bend_segments(xyz[order], ends, tangents, e)
             a, b = order[a], order[b]
-            new = [
+            unchecked = [
                 k
                 for k, key in enumerate(zip(ri[a].tolist(), s_[a].tolist(), s_[b].tolist(), strict=True))
                 if key not in forced
             ]
-            if not new:
+            if not unchecked:
                 break
-            a, b = a[new], b[new]
+            a, b = a[unchecked], b[unchecked]
             forced.update(zip(ri[a].tolist(), s_[a].tolist(), s_[b].tolist(), strict=True))
             self.stats.end_bend_checks += len(a)
             refine((ri[a], s_[a], s_[b], xyz[a], xyz[b]), forced=True)
@@ -390,8 +391,8 @@ class RunRefiner(FaceLimits, RunEnds, BatchedSolves):
             gap_pt = np.concatenate(vid_all)[order] == GAP_POINT
             inflected = inflected_segments(ri[order], xyz[order], after, gap_pt if gap_pt.any() else None)
             if checked:
-                new = order >= checked
-                near = new | np.roll(new, 1) | np.roll(new, -1)
+                fresh = order >= checked
+                near = fresh | np.roll(fresh, 1) | np.roll(fresh, -1)
                 inflected = inflected[near[inflected] | near[inflected + 1]]
             if not len(inflected):
                 break

@@ -356,7 +356,7 @@ def _exact_reference(
     return _Reference(sections, chord, time.perf_counter() - t)
 
 
-def _occt_result(side: Task) -> OcctSide:
+def _occt_result(side: Task) -> OcctSide | None:
     return _helper_result(
         side,
         TessellationError,
@@ -618,18 +618,18 @@ def _build_report(
 
     left_out: list[BaselineLeftOut] = []
 
-    def made(items: list[MeshInput | BaselineLeftOut]) -> list[MeshInput]:
+    def kept_meshes(items: list[MeshInput | BaselineLeftOut]) -> list[MeshInput]:
         left_out.extend(m for m in items if isinstance(m, BaselineLeftOut))
         return [m for m in items if isinstance(m, MeshInput)]
 
-    todo.extend(made(side.items_ready()))  # the baselines OCCT has made already
+    todo.extend(kept_meshes(side.items_ready()))  # the baselines OCCT has made already
     add(todo)
     report("conventional meshes", 0.5)
     while True:
         # free cores first: that reads what OCCT has sent, so a baseline it made just before it
         # ended is among the work handed out with its core, not left to this process alone
         free = tasks.free()
-        if arrived := made(side.items_ready()):  # the others as OCCT makes them
+        if arrived := kept_meshes(side.items_ready()):  # the others as OCCT makes them
             todo.extend(arrived)
             add(arrived)
         hand_out(free)
@@ -640,6 +640,7 @@ def _build_report(
         else:
             tasks.wait_any()  # a baseline
     occt = _occt_result(side) or extent
+    assert occt is not None  # the side's exact box and volume, or ``extent`` where it made none
     rank = {name: i for i, name in enumerate(baselines)}  # the baselines in the order asked for
     todo.sort(key=lambda m: rank[m.name] if m.kind == "baseline" else -1)
     report("measuring meshes", 0.7)

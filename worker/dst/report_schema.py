@@ -4,13 +4,13 @@ that the API can publish the report's schema (``Report.model_json_schema()``) wi
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Final, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from worker.dst.params import SliceParams
 
-REPORT_VERSION = "1.1"  # 1.1: layers carry flat_side (flat faces on planes measured on both sides)
+REPORT_VERSION: Final = "1.1"  # 1.1: layers carry flat_side (flat faces on planes measured on both sides)
 
 
 class Summary(BaseModel):

@@ -92,7 +92,8 @@ def reference_gap_warnings(
     plane = js[cut.vertex_plane]
     d, span = ref_set.nearest(cut.vertices, plane)
     faces = _faces_with_boxes(part)
-    gaps, loose = [], []  # (plane, distance[, the face's edge tolerance])
+    gaps: list[tuple[int, float]] = []  # (plane, distance)
+    loose: list[tuple[int, float, float]] = []  # (plane, distance, the face's edge tolerance)
     bridged = []  # (plane, distance, the reference's and the vertex's distance to the faces, span length)
     for k, j in enumerate(js.tolist()):
         mine = np.flatnonzero(cut.vertex_plane == k)
@@ -144,13 +145,13 @@ def reference_gap_warnings(
             "from the part"
         )
     if loose:
-        worst = max(loose, key=lambda g: g[1])
+        loosest = max(loose, key=lambda g: g[1])
         planes = ", ".join(str(j) for j, _, _ in loose)
         out.append(
             f"the file is exact only to its tolerances at {len(loose)} plane(s) ({planes}; the largest at "
-            f"plane {worst[0]}, z = {result.layers[worst[0]].z:.4f} mm): a DST ring vertex there lies on a "
-            f"face of the B-rep yet {worst[1]:.3g} mm from the exact reference, within the "
-            f"{worst[2]:.3g} mm tolerance of that face's edges (its boundary and its neighbours' disagree "
+            f"plane {loosest[0]}, z = {result.layers[loosest[0]].z:.4f} mm): a DST ring vertex there lies on a "
+            f"face of the B-rep yet {loosest[1]:.3g} mm from the exact reference, within the "
+            f"{loosest[2]:.3g} mm tolerance of that face's edges (its boundary and its neighbours' disagree "
             "by up to that much, so both sections lie on the B-rep). There the DST mesh's vertex_dev and "
             "chord_dev measure the file's tolerance, not the mesh"
         )
@@ -172,7 +173,7 @@ class _FaceProbe:
         """Does ``q`` lie within ``tol`` of the surface, inside the face's trim?"""
         if self.box.IsOut(q):
             return False
-        if self._surface is None:
+        if self._surface is None or self._eval is None:
             self._surface = ShapeAnalysis_Surface(BRep_Tool.Surface_s(self.face))
             self._eval = FaceEval(BRepAdaptor_Surface(self.face))
         u, v = self._surface.ValueOfUV(q, tol).Coord()
@@ -236,7 +237,8 @@ def self_crossing_warnings(
     0.37 mm stretch), the ring's two passes along it cross by micrometres, and the pocket the shorter
     way round is a whole lobe (1168 mm^2 there), not a fault of the build's."""
     big = [p for p in pockets if p[1] > chord * chord]
-    faults, necks = [], []
+    faults: list[tuple[int, float, float, float, float]] = []
+    necks: list[tuple[int, float, float, float, float]] = []
     for p in big:
         at_neck = np.isfinite(p[1]) and _at_a_neck(ref_loops[p[0]], np.array(p[3:5]), chord)
         (necks if at_neck else faults).append(p)

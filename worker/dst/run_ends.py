@@ -12,6 +12,7 @@ from OCP.gp import gp_Pnt, gp_Vec
 from worker.dst.chords import end_segments
 from worker.dst.face_limits import TRIM_TOL_MM
 from worker.dst.runs import GAP_POINT, GAP_SPAN_REL, Run
+from worker.dst.sampler_state import SamplerState
 
 END_TANGENT_ITER = 6  # Gauss-Newton steps placing a run's end vertex on its face (from its seed path)
 # ... where it lies within this of the face (a file's tolerance): the face's tangent
@@ -23,7 +24,7 @@ END_TANGENT_MIN_SLOPE = 1e-3  # a face steeper than this (normal's horizontal sh
 GAP_END_REL = 0.25
 
 
-class RunEnds:
+class RunEnds(SamplerState):
     """``RunRefiner``'s handling of run end vertices (a mixin)."""
 
     def _add_gap_points(
@@ -45,6 +46,7 @@ class RunEnds:
             [runs[k] for k in run.tolist()], end, offsets=True
         )
         known[run, end] = True
+        assert foot_uv is not None and off is not None  # (asked for)
         far = np.flatnonzero(off > GAP_END_REL * e)
         if not len(far):
             return

@@ -476,7 +476,9 @@ class RingSampler(Crossings, Traces, RunRefiner):
         far = (gap > SUSPECT_DEFLECTIONS * self.mesh.deflection).tolist()
         step_of = (2.0 * self.tri_uv_scale[topo.seg_tri[cross]]).tolist()
         es = self.edge_subdiv
-        runs, sampled, repeats = [], [], []
+        runs: list[Run] = []
+        sampled: list[tuple[int, tuple[int, int] | None]] = []  # (crossing, its in-plane edge)
+        repeats: list[tuple[int, tuple[int, int], bool]] = []
         for i, c in enumerate(cl):
             if c in self.subdiv:
                 continue
@@ -547,9 +549,10 @@ class RingSampler(Crossings, Traces, RunRefiner):
             return rings[li]
         if self._retrace_segments(li, cl, ring, starts, face_of):
             ring = self._pinned_ring(cl)
-        runs = self._excursion_runs(ring, face_of, li, stretches=False)
-        for (k, _, run), run_pts in zip(runs, self._sample_traced([r for *_, r in runs]), strict=True):
-            if run_pts is None:
+        excursions = self._excursion_runs(ring, face_of, li, stretches=False)
+        traced = self._sample_traced([run for *_, run in excursions])
+        for (k, _, run), traced_pts in zip(excursions, traced, strict=True):
+            if traced_pts is None:
                 continue
             c, at = starts[ring[k]]
             segment = [self.crossing(c), *self.subdiv[c], self.crossing(int(topo.succ[c]))]
@@ -557,9 +560,9 @@ class RingSampler(Crossings, Traces, RunRefiner):
                 self.stats.excursion_failures += 1
                 continue
             sub = self.subdiv[c]
-            self.subdiv[c] = sub[:at] + run_pts[1:-1] + sub[at:]
+            self.subdiv[c] = sub[:at] + traced_pts[1:-1] + sub[at:]
             self.stats.excursions += 1
-        if runs:
+        if excursions:
             ring = self._pinned_ring(cl)
         return self._corner_handovers(li, cl, nxt_pos, ring)
 
@@ -684,13 +687,13 @@ class RingSampler(Crossings, Traces, RunRefiner):
             return None
         x, y, _, _ = trace[len(trace) // 2]
         m = self.pool.add((x, y, zc), j)
-        runs = [self._traced_run(face, a, m, zc, j), self._traced_run(face, m, a, zc, j)]
-        if any(run is None for run in runs):
+        there, back = self._traced_run(face, a, m, zc, j), self._traced_run(face, m, a, zc, j)
+        if there is None or back is None:
             return None
-        halves = self._sample_traced(runs)
-        if any(h is None for h in halves):
+        first, second = self._sample_traced([there, back])
+        if first is None or second is None:
             return None
-        return _dedupe_cyclic(halves[0][:-1] + halves[1][:-1], self.pool)
+        return _dedupe_cyclic(first[:-1] + second[:-1], self.pool)
 
     def _pinned_ring(self, cl: list[int]) -> list[int]:
         """The ring of a pinned loop's crossings ``cl`` (after ``pinned_loop``): each crossing, then

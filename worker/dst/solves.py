@@ -16,6 +16,7 @@ from OCP.gp import gp_Pnt, gp_Vec
 from worker.dst.constants import LEVEL_TOL_MM, NEWTON_MAX_ITER
 from worker.dst.exact import SETTLED_GAP_MM, SETTLED_STEP_REL, UV_NEAR_MAX_ITER, UV_NEAR_TOL_MM
 from worker.dst.face_limits import beyond_box
+from worker.dst.sampler_state import SamplerState
 
 # ``_d1``: a face's points are evaluated by its vectorised evaluator in batches of at least this
 # many (with derivatives; the point alone), one by one by OCCT's D1 below that: scipy's NdBSpline
@@ -28,7 +29,7 @@ BATCH_MIN_P = 4
 BOUNDED_FOOT_ITER = 12
 
 
-class BatchedSolves:
+class BatchedSolves(SamplerState):
     """``RingSampler``'s batched solves on its faces (a mixin)."""
 
     def _d1(

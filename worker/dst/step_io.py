@@ -186,7 +186,7 @@ def orient(part: LoadedPart, rotation: tuple[float, float, float]) -> LoadedPart
     are transformed (copies; the part itself is not changed), so no placement is left on them.
     Returns ``part`` itself when it already has this rotation; a part read with another one is
     turned from the file's placement again, never on top of it."""
-    rotation = tuple(float(a) for a in rotation)
+    rotation = (float(rotation[0]), float(rotation[1]), float(rotation[2]))
     if rotation == part.rotation:
         return part
     if part.rotation != NO_ROTATION:
@@ -240,9 +240,9 @@ def split_loose_vertices(solid: TopoDS_Solid) -> tuple[TopoDS_Solid, int, float]
     new_ends: list[tuple[TopoDS_Edge, dict[int, TopoDS_Vertex]]] = []  # (edge, end 0/1 -> vertex)
 
     def ends_of(edge: TopoDS_Edge) -> dict[int, TopoDS_Vertex]:
-        for known, ends in new_ends:
+        for known, vertex_of in new_ends:
             if known.IsSame(edge):
-                return ends
+                return vertex_of
         new_ends.append((edge, {}))
         return new_ends[-1][1]
 
@@ -291,16 +291,16 @@ def split_loose_vertices(solid: TopoDS_Solid) -> tuple[TopoDS_Solid, int, float]
         return None
 
     reshape = BRepTools_ReShape()
-    for edge, ends in new_ends:
+    for edge, vertex_of in new_ends:
         copy = TopoDS.Edge(edge.EmptyCopied())  # same curves, pcurves, range and tolerance; no vertices
         first, last = BRep_Tool.Range_s(edge)
         for end, old, param, orientation in (
             (0, TopExp.FirstVertex_s(edge), first, TopAbs_FORWARD),
             (1, TopExp.LastVertex_s(edge), last, TopAbs_REVERSED),
         ):
-            vertex = ends.get(end, old)
+            vertex = vertex_of.get(end, old)
             builder.Add(copy, vertex.Oriented(orientation))
-            if end in ends:
+            if end in vertex_of:
                 builder.UpdateVertex(vertex, param, copy, BRep_Tool.Tolerance_s(vertex))
         reshape.Replace(edge, copy)
     healed = reshape.Apply(solid)

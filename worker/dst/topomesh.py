@@ -481,7 +481,7 @@ def _stray_triangles(pts: np.ndarray, tris: np.ndarray, polygons: list[np.ndarra
     if not loose.any():
         return np.zeros(len(tris), dtype=bool)
     e = np.sort(np.stack([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]], axis=1), axis=2)
-    return np.isin(e[..., 0] * n + e[..., 1], border_key[loose]).any(axis=1)
+    return np.asarray(np.isin(e[..., 0] * n + e[..., 1], border_key[loose]).any(axis=1))
 
 
 def _hole_loops(tris: np.ndarray, n_nodes: int) -> list[list[int]] | None:
@@ -585,7 +585,8 @@ def _patch_holes(xyz, tris, tri_uv, tri_face, stray_mask, faces, edge_faces, edg
 
     Returns (tris, tri_uv, tri_face, [(face, triangles added, distance mm)], triangles dropped).
     """
-    unpatched = tris, tri_uv, tri_face, [], 0
+    no_patches: list[tuple[int, int, float]] = []
+    unpatched = tris, tri_uv, tri_face, no_patches, 0
     keep = ~stray_mask & ~_doubled_triangles(tris)
     folded = np.isin(tri_face, unique_ints(tri_face[stray_mask]))
     keep &= ~(_repeated_edge_triangles(tris, len(xyz), keep) & folded)
@@ -618,7 +619,7 @@ def _patch_holes(xyz, tris, tri_uv, tri_face, stray_mask, faces, edge_faces, edg
                 votes[f] = votes.get(f, 0) + 1
         if not votes or len(loop) > HOLE_MAX_NODES:
             return unpatched
-        owner = max(votes, key=votes.get)
+        owner = max(votes, key=lambda f: votes[f])
         pts = xyz[loop]
         tri = _min_area_triangulation(pts)
         if tri is None:

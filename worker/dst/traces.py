@@ -21,6 +21,7 @@ from worker.dst.errors import TessellationError
 from worker.dst.exact import ExactFailure
 from worker.dst.face_limits import TRIM_TOL_MM, uv_of
 from worker.dst.runs import Run
+from worker.dst.sampler_state import SamplerState
 
 # A sampled ring turning by more than this (cosine) at a vertex inside a face is checked for an
 # excursion of the curve its segments skip (``_excursion_runs``); a correct sampling turns that much
@@ -37,7 +38,7 @@ SPUR_TURN_COS = -0.9
 EXCURSION_CLUSTER_GAP = 32
 
 
-class Traces:
+class Traces(SamplerState):
     """``RingSampler``'s excursion checks and traces along the exact curve (a mixin)."""
 
     def _replace_excursions(self, rings: dict[int, list[int]], face_of: dict[int, int]) -> None:
@@ -235,7 +236,7 @@ class Traces:
             self.stats.spur_vertices += len(tips)
         return ring
 
-    def _sample_traced(self, runs: list[Run]) -> list[list[int] | None]:
+    def _sample_traced(self, runs: list[Run]) -> Sequence[list[int] | None]:
         """``_sample_runs`` of traced runs, None for one that cannot meet the budget (counted in
         ``excursion_failures``; its ring keeps the points it had): the excursion check may improve a
         ring, never fail a build that would otherwise succeed."""
@@ -348,15 +349,15 @@ class Traces:
             # turned had suspects either side of the ring's end, a corner between them)
             pieces = []
             cidx = np.flatnonzero(corner)
-            run = np.searchsorted(cidx, ks, side="right") % max(1, len(cidx))
-            for r in sorted(set(run.tolist())):
+            between = np.searchsorted(cidx, ks, side="right") % max(1, len(cidx))  # corners before
+            for r in sorted(set(between.tolist())):
                 pieces += _clusters(
-                    [k for k, q in zip(ks, run.tolist(), strict=True) if q == r], n, EXCURSION_CLUSTER_GAP
+                    [k for k, q in zip(ks, between.tolist(), strict=True) if q == r], n, EXCURSION_CLUSTER_GAP
                 )
             pieces.sort()
         else:
             pieces = [(k, k + 1) for k in ks]
-        out = []
+        out: list[tuple[int, int, Run]] = []
         taken: set[int] = set()  # vertices of the stretches so far (widened ones must not overlap)
 
         def span(a: int, b: int) -> set[int]:  # the ring positions of stretch a -> b, ends included
