@@ -219,6 +219,7 @@ def run_sandboxed(job_id: str, store: JobStore, artifacts: ArtifactStore, settin
         return _finish(store, artifacts, job_id, "failed", outcome[1], outcome[2])
     result = outcome[1]
     if outcome[0] == "error":
+        assert mesh is not None  # (failed above otherwise)
         # The mesh was written whole before the report failed, crashed or ran out of time: the job
         # succeeds with the mesh alone and says why there is no report (nothing of it is kept).
         for name, (file, _) in ARTIFACTS.items():

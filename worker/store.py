@@ -6,6 +6,7 @@ and outcome. Nothing here imports OCCT.
 
 from __future__ import annotations
 
+import builtins
 import json
 import os
 import socket
@@ -198,7 +199,7 @@ class JobStore:
         with self.engine.begin() as c:
             c.execute(jobs.delete().where(jobs.c.id == job_id))
 
-    def running(self) -> list[Job]:
+    def running(self) -> builtins.list[Job]:
         with self.engine.connect() as c:
             rows = c.execute(jobs.select().where(jobs.c.status == "running")).all()
         return [Job.from_row(r) for r in rows]
@@ -221,7 +222,7 @@ class JobStore:
                     )
                 )
 
-    def live_workers(self, within_s: float) -> list[dict[str, Any]]:
+    def live_workers(self, within_s: float) -> builtins.list[dict[str, Any]]:
         with self.engine.connect() as c:
             rows = c.execute(workers.select().where(workers.c.last_seen >= time.time() - within_s)).all()
         return [dict(r._mapping) for r in rows]
