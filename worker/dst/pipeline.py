@@ -30,7 +30,8 @@ from worker.dst.meshops import (
 from worker.dst.params import SliceParams
 from worker.dst.planes import PlanePlan, plan_planes
 from worker.dst.ridges import prepare_extremes
-from worker.dst.sampling import RingSampler, SamplingStats, VertexPool, unresolved_summary
+from worker.dst.sampler_records import SamplingStats, VertexPool, unresolved_summary
+from worker.dst.sampling import RingSampler
 from worker.dst.sections import cut_topology
 from worker.dst.step_io import LoadedPart, heal_wires, orient, read_step
 from worker.dst.stl_io import merge_equal_vertices, write_3mf, write_stl

@@ -31,7 +31,8 @@ from worker.dst.forked import TaskGroup, idle_cores
 from worker.dst.lowest import snap_extremes
 from worker.dst.pipeline import bbox_diagonal
 from worker.dst.ridges import prepare_extremes
-from worker.dst.sampling import RingSampler, VertexPool
+from worker.dst.sampler_records import VertexPool
+from worker.dst.sampling import RingSampler
 from worker.dst.sections import cut_topology, section_pairs_per_plane
 from worker.dst.step_io import LoadedPart, heal_wires
 from worker.dst.topomesh import build_topomesh

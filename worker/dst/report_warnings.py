@@ -31,7 +31,7 @@ from worker.dst.cuts import cut_mesh, loop_needles, loop_self_crossings
 from worker.dst.deviation import SegmentSet
 from worker.dst.exact import FaceEval
 from worker.dst.report_schema import MeshReport
-from worker.dst.sampling import unresolved_summary
+from worker.dst.sampler_records import unresolved_summary
 from worker.dst.step_io import LoadedPart
 from worker.dst.topomesh import max_tolerance
 

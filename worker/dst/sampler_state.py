@@ -14,7 +14,7 @@ if TYPE_CHECKING:
     from scipy.spatial import cKDTree
 
     from worker.dst.runs import Run
-    from worker.dst.sampling import SamplingStats, VertexPool
+    from worker.dst.sampler_records import SamplingStats, VertexPool
     from worker.dst.sections import SectionTopology
     from worker.dst.topomesh import TopoMesh
 

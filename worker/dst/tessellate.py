@@ -23,7 +23,8 @@ from worker.dst.chords import distances_to_segments
 from worker.dst.cuts import segment_pairs_near, side
 from worker.dst.forked import TaskDied, TaskGroup, idle_cores
 from worker.dst.meshops import repeated_corner, unique_ints
-from worker.dst.sampling import RingSampler, VertexPool
+from worker.dst.sampler_records import VertexPool
+from worker.dst.sampling import RingSampler
 from worker.dst.sections import SectionTopology
 
 # Free loops with fewer topology crossings than this are sampled in one share: ~20 ms of sampling

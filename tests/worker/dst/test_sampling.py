@@ -11,7 +11,8 @@ from OCP.GeomAbs import GeomAbs_Cone, GeomAbs_Plane
 from worker.dst import constants as C
 from worker.dst.chords import point_segment_distance
 from worker.dst.pipeline import bbox_diagonal, topo_deflection
-from worker.dst.sampling import RingSampler, VertexPool, ring_passes
+from worker.dst.sampler_records import VertexPool
+from worker.dst.sampling import RingSampler, ring_passes
 from worker.dst.sections import cut_topology
 from worker.dst.step_io import read_step
 from worker.dst.topomesh import build_topomesh
@@ -714,7 +715,7 @@ def test_a_runs_samples_at_one_point_are_dropped_against_the_point_kept_before_a
     from types import SimpleNamespace
 
     from worker.dst.refine import RunRefiner
-    from worker.dst.sampling import SamplingStats
+    from worker.dst.sampler_records import SamplingStats
 
     pool = VertexPool()
     x = [

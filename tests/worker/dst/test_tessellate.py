@@ -16,7 +16,8 @@ from tests.worker.dst.meshcheck import assert_watertight
 from worker.dst.forked import fork_available
 from worker.dst.params import SliceParams
 from worker.dst.pipeline import slice_step
-from worker.dst.sampling import RingSampler, SampledShare, SamplingStats, VertexPool
+from worker.dst.sampler_records import SampledShare, SamplingStats, VertexPool
+from worker.dst.sampling import RingSampler
 
 needs_fork = pytest.mark.skipif(not fork_available(), reason="fork is used on Linux only")
 
