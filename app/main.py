@@ -24,10 +24,12 @@ from fastapi import Path as PathParam
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response, StreamingResponse
 from starlette.concurrency import run_in_threadpool
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
 
 from app import schemas as S
 from app.page import INDEX_HTML
-from worker.dst.baselines import parse_baselines
+from worker.dst.baselines import BASELINES_PATTERN, parse_baselines
 from worker.dst.errors import InvalidParameters
 from worker.dst.params import ROTATION_FIELDS, SLICING_FIELDS, SliceParams
 from worker.dst.report_schema import Report
@@ -91,10 +93,23 @@ async def _api_error(_request: Request, exc: ApiError) -> JSONResponse:
     return _error(exc.status_code, exc.code, str(exc.detail), exc.headers)
 
 
-@app.exception_handler(HTTPException)
-async def _http_error(_request: Request, exc: HTTPException) -> JSONResponse:
+# (Starlette's own: the router's 404 and 405 are not FastAPI's HTTPException, which subclasses it)
+@app.exception_handler(StarletteHTTPException)
+async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
     code = {404: "not_found", 405: "method_not_allowed"}.get(exc.status_code, "http_error")
-    return _error(exc.status_code, code, str(exc.detail), getattr(exc, "headers", None))
+    headers = getattr(exc, "headers", None)
+    if exc.status_code == 405:  # the router names the methods of the first route of the path only
+        headers = {**(headers or {}), "Allow": ", ".join(_allowed_methods(request))}
+    return _error(exc.status_code, code, str(exc.detail), headers)
+
+
+def _allowed_methods(request: Request) -> list[str]:
+    """Every method the routes of the request's path answer."""
+    methods: set[str] = set()
+    for route in request.app.router.routes:
+        if route.matches(request.scope)[0] != Match.NONE:
+            methods |= getattr(route, "methods", None) or set()
+    return sorted(methods)
 
 
 @app.exception_handler(RequestValidationError)
@@ -306,6 +321,8 @@ BaselinesField = Annotated[
     Form(
         max_length=200,
         description="Comma-separated report baselines or 'none' (default occt_fast,occt_high_quality,prusaslicer).",
+        # documented, checked by the app itself (a message naming the unknown baseline and the choices)
+        json_schema_extra={"pattern": BASELINES_PATTERN},
     ),
 ]
 

@@ -267,3 +267,20 @@ def test_health_and_page(api):
     assert "dst-service" in api.get("/").text
     ready = api.get("/ready")
     assert ready.status_code == 503 and ready.json()["workers"] == 0  # no worker in this test
+
+
+def test_unknown_paths_and_methods_get_the_api_error_format_with_every_allowed_method(api):
+    """Routing errors come from the framework's router, not from a route: they too are
+    ``{"error": {"code", "message"}}`` (``not_found``, ``method_not_allowed``), and a 405 names in
+    its ``Allow`` header every method the resource has (GET and POST on /v1/jobs, served by two
+    routes), as RFC 9110 asks."""
+    r = api.get("/v2/jobs")
+    assert r.status_code == 404 and r.json()["error"]["code"] == "not_found", r.text
+    r = api.put("/v1/jobs")
+    assert r.status_code == 405 and r.json()["error"]["code"] == "method_not_allowed", r.text
+    assert {m.strip() for m in r.headers["allow"].split(",")} == {"GET", "POST"}
+    r = api.post("/v1/jobs/" + "0" * 64)
+    assert r.status_code == 405 and r.json()["error"]["code"] == "method_not_allowed", r.text
+    assert {m.strip() for m in r.headers["allow"].split(",")} == {"GET", "DELETE"}
+    r = api.get("/v1/slice")
+    assert r.status_code == 405 and r.headers["allow"] == "POST"

@@ -43,6 +43,10 @@ BASELINE_PRESETS: dict[str, Preset] = {
     ),
 }
 DEFAULT_BASELINES = ("occt_fast", "occt_high_quality", "prusaslicer")
+# What ``parse_baselines`` accepts as a string, for the API's schema: comma-separated items, each a
+# preset's name, 'none' or empty, spaces round them allowed
+_ITEM = r"\s*(" + "|".join(["none", *BASELINE_PRESETS]) + r")?\s*"
+BASELINES_PATTERN = rf"^{_ITEM}(,{_ITEM})*$"
 
 
 def parse_baselines(names: Sequence[str] | str | None) -> tuple[str, ...]:
