@@ -14,6 +14,7 @@ from pathlib import Path
 import httpx
 import pytest
 
+from tests.conftest import build_part, write_step
 from worker.store import JobStore
 
 
@@ -80,6 +81,17 @@ class Service:
 
     def store(self) -> JobStore:
         return JobStore(f"sqlite:///{self.data_dir / 'jobs.sqlite'}")
+
+
+@pytest.fixture(scope="module")
+def parts(tmp_path_factory):
+    """STEP files of small parts (a 10 mm hemisphere, a tube, a torus), built once per module."""
+    d = tmp_path_factory.mktemp("parts")
+    return {
+        "hemisphere": write_step(build_part("hemisphere", radius=10.0), d / "hemisphere.step"),
+        "tube": write_step(build_part("tube"), d / "tube.step"),
+        "torus": write_step(build_part("torus"), d / "torus.step"),
+    }
 
 
 @pytest.fixture

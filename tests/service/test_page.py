@@ -13,8 +13,6 @@ import numpy as np
 import pytest
 import trimesh
 
-from tests.conftest import build_part, write_step
-
 pytestmark = [pytest.mark.service, pytest.mark.slow]
 
 webdriver = pytest.importorskip(
@@ -59,11 +57,10 @@ def _status(browser) -> tuple[str, str]:
     return el.text, el.get_attribute("class") or ""
 
 
-def test_the_page_slices_an_uploaded_part_and_links_its_mesh_and_report(service_factory, browser, tmp_path):
+def test_the_page_slices_an_uploaded_part_and_links_its_mesh_and_report(service_factory, browser, parts):
     svc = service_factory().start()
-    part = write_step(build_part("hemisphere", radius=10.0), tmp_path / "hemisphere.step")
     browser.get(svc.url + "/")
-    browser.find_element(By.NAME, "file").send_keys(str(part))
+    browser.find_element(By.NAME, "file").send_keys(str(parts["hemisphere"]))
     _fill(browser, "layer_height", "0.25")
     _fill(browser, "baselines", "occt_fast")
     browser.find_element(By.TAG_NAME, "button").click()
@@ -95,15 +92,14 @@ def test_the_page_slices_an_uploaded_part_and_links_its_mesh_and_report(service_
     assert httpx.get(links["plot"]).text.lstrip().startswith(("<?xml", "<svg"))
 
 
-def test_the_page_shows_why_an_upload_is_refused(service_factory, browser, tmp_path):
+def test_the_page_shows_why_an_upload_is_refused(service_factory, browser, parts, tmp_path):
     svc = service_factory().start()
     not_step = tmp_path / "notes.step"
     not_step.write_text("not a STEP file\n")
-    part = write_step(build_part("hemisphere", radius=10.0), tmp_path / "hemisphere.step")
     browser.get(svc.url + "/")
     for path, field, value, code in (
         (not_step, None, None, "not_step"),
-        (part, "layer_height", "5", "invalid_parameters"),
+        (parts["hemisphere"], "layer_height", "5", "invalid_parameters"),
     ):
         browser.find_element(By.NAME, "file").send_keys(str(path))
         if field:

@@ -17,20 +17,10 @@ import pytest
 import trimesh
 
 from app.client import DstClient, JobFailed
-from tests.conftest import build_part, process_dead, write_step
+from tests.conftest import process_dead, write_step
 from worker.dst.report import Report
 
 pytestmark = [pytest.mark.service, pytest.mark.slow]
-
-
-@pytest.fixture(scope="module")
-def parts(tmp_path_factory):
-    d = tmp_path_factory.mktemp("parts")
-    return {
-        "hemisphere": write_step(build_part("hemisphere", radius=10.0), d / "hemisphere.step"),
-        "tube": write_step(build_part("tube"), d / "tube.step"),
-        "torus": write_step(build_part("torus"), d / "torus.step"),
-    }
 
 
 def wait_status(c: DstClient, job_id: str, statuses: tuple[str, ...], timeout: float = 180.0) -> dict:
