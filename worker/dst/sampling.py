@@ -30,7 +30,6 @@ import math
 from collections import Counter
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from worker.dst.chords import point_segment_distance
 from worker.dst.constants import MIN_LOOP_VERTICES, REPEAT_MM, SEGMENT_FILL
@@ -64,6 +63,7 @@ class RingSampler(Crossings, Traces, RunRefiner):
         exact_trim: bool = False,
         keep_unresolved: bool = False,
     ):
+        # (each field's type is declared once, in ``SamplerState``)
         self.mesh, self.topo, self.pool = mesh, topo, pool
         self.seg_len = segment_length
         self.chord = chord_error
@@ -88,37 +88,37 @@ class RingSampler(Crossings, Traces, RunRefiner):
         # instead of failing the sampling (a traced run's still fails it: ``_sample_traced`` falls
         # back); the DST build and the report's reference both say so in their warnings
         self.keep_unresolved = keep_unresolved
-        self.unresolved: list[tuple[int, float]] = []
+        self.unresolved = []
         self.trace_reach = max(EXCURSION_MAX_TRACE_MM, 100.0 * segment_length)  # a trace's longest
         # a pinned loop's crossings are kept (the kept triangles use them): False where only the
         # loops are wanted (the deviation report's reference), so that a stretch of them in the
         # wrong order can be traced again
         self.keep_crossings = keep_crossings
         self.stats = SamplingStats()
-        self.node_vid: dict[int, int] = {}
-        self.cross_vid: dict[int, int] = {}
+        self.node_vid = {}
+        self.cross_vid = {}
         # crossings whose root on their face lies beyond the face's trim (on the surface's extension,
         # not on the B-rep): see pinned_loop
-        self.off_trim: set[int] = set()
+        self.off_trim = set()
         self._on_brep_edge = np.zeros(mesh.n_nodes, dtype=bool)  # nodes on a B-rep edge
         if mesh.edge_of:
             self._on_brep_edge[np.fromiter((n for key in mesh.edge_of for n in key), dtype=np.int64)] = True
-        self.subdiv: dict[int, list[int]] = {}  # start crossing of a pinned segment -> inner vertex ids
+        self.subdiv = {}  # start crossing of a pinned segment -> inner vertex ids
         # topology edges lying in a plane (both ends are nodes on it) whose ring segment was
         # subdivided: (a, b) with a < b -> inner vertex ids from a to b
-        self.edge_subdiv: dict[tuple[int, int], list[int]] = {}
-        self._edge_param: dict[tuple[int, int], float] = {}
-        self._pred: np.ndarray | None = None  # previous crossing along its loop (``topo.succ`` inverted)
-        self._solving: set[int] = set()  # crossings whose neighbours are being solved
-        self._gaps: list[tuple] = []  # (length, z, face, one end, the other): see settle_gaps
-        self._gap_keys: tuple = (0, set(), np.empty(0))  # see _gap_segments
+        self.edge_subdiv = {}
+        self._edge_param = {}
+        self._pred = None  # previous crossing along its loop (``topo.succ`` inverted)
+        self._solving = set()  # crossings whose neighbours are being solved
+        self._gaps = []  # (length, z, face, one end, the other): see settle_gaps
+        self._gap_keys = (0, set(), np.empty(0))  # see _gap_segments
         # vertex ids where the section changes face or meets a B-rep edge: its curvature may jump there
-        self.corner_vids: set[int] = set()
-        self.gap_vids: set[int] = set()  # points added next to run ends off their curve (refine.py)
+        self.corner_vids = set()
+        self.gap_vids = set()  # points added next to run ends off their curve (refine.py)
         # points where a run's curve leaves its face for good before the corner at its end: the
         # ring bridges from there to the corner (``FaceLimits._trim_borders``; ``_corner_handovers``)
-        self.bridge_vids: set[int] = set()
-        self._kinks: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # face -> interior C0 u and v lines
+        self.bridge_vids = set()
+        self._kinks = {}  # face -> interior C0 u and v lines
         self._ads = [f.ad for f in mesh.faces]
         self._evals = [f.batch for f in mesh.faces]
         self._analytic = np.array([e is not None for e in self._evals], dtype=bool)
@@ -131,10 +131,10 @@ class RingSampler(Crossings, Traces, RunRefiner):
         self._period = np.array([(f.period(0), f.period(1)) for f in fs], dtype=np.float64).reshape(-1, 2)
         self._surface_box = np.array([f.surface_bounds() for f in fs], dtype=np.float64).reshape(-1, 4)
         # per face: a k-d tree of its topology triangles' corners and their (u, v) (``_node_uv``)
-        self._face_nodes: dict[int, tuple[cKDTree, np.ndarray] | None] = {}
-        self._trim_memo: dict[tuple[int, int], bool] = {}  # (face, vertex) -> in its trim (``_in_trim``)
+        self._face_nodes = {}
+        self._trim_memo = {}  # (face, vertex) -> in its trim (``_in_trim``)
         # (face, chord end's xyz bytes) -> its (u, v) on the face (``_solve_from_chord``)
-        self._chord_end_uv: dict[tuple[int, bytes], tuple[float, float]] = {}
+        self._chord_end_uv = {}
         uv = mesh.tri_uv
         # (u, v) size of each topology triangle: the scale of a Newton step from a seed
         self.tri_uv_scale = np.max(np.linalg.norm(uv - np.roll(uv, 1, axis=1), axis=2), axis=1) + 1e-12
