@@ -466,6 +466,128 @@ def test_reference_topology_retries_another_deflection(tmp_path, monkeypatch):
         exact_sections(part, np.array([1.1]), chord=1e-3, segment_length=2.0, deflection=0.01)
 
 
+def _face_count(shape) -> int:
+    from OCP.TopAbs import TopAbs_FACE
+    from OCP.TopExp import TopExp_Explorer
+
+    exp, n = TopExp_Explorer(shape, TopAbs_FACE), 0
+    while exp.More():
+        n += 1
+        exp.Next()
+    return n
+
+
+@pytest.mark.parametrize("nurbs", [True, False], ids=["bspline", "sphere"])
+def test_the_reference_meshes_a_face_with_a_pole_in_quarters_and_finds_the_same_sections(
+    tmp_path, monkeypatch, nurbs
+):
+    """BRepMesh is slow on a face with a pole (a sphere's): the reference's topology mesh divides such
+    a face into quarters of its (u, v) range. The divided solid is the same solid (volume, area), the
+    faces without a pole are left alone, and its sections are those of the solid meshed as it is:
+    the same loops at every plane, every vertex of one within the sampling chord of the other's
+    polyline (each vertex is an exact point, each polyline within the chord of the exact curve)."""
+    from OCP.BRepGProp import BRepGProp
+    from OCP.GProp import GProp_GProps
+
+    from tests.conftest import build_part, write_step
+    from worker.dst import reference
+
+    part = read_step(write_step(build_part("hemisphere", radius=R), tmp_path / "h.step", nurbs=nurbs))
+    solid = part.solids[0]
+    made = reference.divide_pole_faces(solid)
+    assert made is not None
+    divided, origin = made
+    assert (_face_count(solid), _face_count(divided)) == (2, 5)  # the dome's quarters and the disc
+    assert origin == (0, 0, 0, 0, 1)  # each face's face of the solid (the dome is its first)
+    volumes, areas = [], []
+    for shape in (solid, divided):  # OCCT's adaptive integration, to 1e-10 of each
+        props = GProp_GProps()
+        BRepGProp.VolumeProperties_s(shape, props, 1e-10)
+        volumes.append(props.Mass())
+        props = GProp_GProps()
+        BRepGProp.SurfaceProperties_s(shape, props, 1e-10)
+        areas.append(props.Mass())
+    assert volumes[1] == pytest.approx(volumes[0], rel=1e-8)
+    assert areas[1] == pytest.approx(areas[0], rel=1e-8)
+    assert areas[0] == pytest.approx(3 * math.pi * R * R, rel=1e-5)  # dome and disc
+    box = read_step(write_step(build_part("step_box"), tmp_path / "box.step"))
+    assert reference.divide_pole_faces(box.solids[0]) is None
+
+    meshed = []
+    build = reference.build_topomesh
+
+    def counted(shape, **kw):
+        mesh = build(shape, **kw)
+        meshed.append(len(mesh.faces))
+        return mesh
+
+    monkeypatch.setattr(reference, "build_topomesh", counted)
+    heights = np.arange(0.1, R, 0.7)
+    chord = 1e-3
+    quartered = exact_sections(part, heights, chord=chord, segment_length=2.0, deflection=0.01, helper=False)
+    monkeypatch.setattr(reference, "divide_pole_faces", lambda s: None)
+    whole = exact_sections(part, heights, chord=chord, segment_length=2.0, deflection=0.01, helper=False)
+    assert meshed == [5, 2]
+    assert [len(lp) for lp in quartered.loops] == [len(lp) for lp in whole.loops] == [1] * len(heights)
+    for a, b in zip(quartered.loops, whole.loops, strict=True):
+        assert _polyline_gap(a[0], b[0]) <= chord
+        assert _polyline_gap(b[0], a[0]) <= chord
+    # an inscribed polyline of sag <= chord: at most chord / radius of the circle's length short
+    circle = 2 * math.pi * np.sqrt(R * R - (quartered.zmin + heights) ** 2)
+    assert np.all(quartered.perimeters() <= circle * (1 + 1e-7))
+    assert np.all(quartered.perimeters() >= circle * (1 - chord / (circle / (2 * math.pi))))
+
+
+def test_a_divided_solid_brepmesh_cannot_mesh_is_meshed_as_it_is(hemisphere, monkeypatch):
+    """Where BRepMesh's mesh of the solid with its pole faces divided is not a closed manifold (or
+    leaves a face bare), the reference meshes the solid as it is, at the same deflection."""
+    from worker.dst import reference
+
+    path = hemisphere[0]
+    build, tried = reference.build_topomesh, []
+
+    def refuses_the_divided(shape, **kw):
+        tried.append((_face_count(shape), kw["deflection"]))
+        if _face_count(shape) == 5:
+            raise TessellationError("topology mesh is not a closed 2-manifold")
+        return build(shape, **kw)
+
+    monkeypatch.setattr(reference, "build_topomesh", refuses_the_divided)
+    ref = exact_sections(
+        read_step(path), np.array([0.1, 10.1]), chord=1e-3, segment_length=2.0, deflection=0.01
+    )
+    assert tried == [(5, 0.01), (2, 0.01)]
+    assert "deflection 0.01 mm" in ref.method
+    radius = np.sqrt(R * R - (ref.zmin + np.array([0.1, 10.1])) ** 2)
+    assert ref.perimeters() == pytest.approx(2 * math.pi * radius, rel=1e-4)
+
+
+def test_a_reference_failure_naming_a_divided_face_says_which_face_of_the_solid_it_is(
+    hemisphere, monkeypatch
+):
+    """An error of the reference's sampling names faces of its topology mesh: where that mesh's pole
+    faces are divided, the message says which of the solid's faces they are part of."""
+    from worker.dst import reference
+
+    def fails(mesh, *args):
+        raise TessellationError(f"no exact point of face {len(mesh.faces) - 1} at z=1.0000 mm")
+
+    monkeypatch.setattr(reference, "_sections_in_runs", fails)
+    with pytest.raises(TessellationError) as exc:
+        exact_sections(
+            read_step(hemisphere[0]), np.array([1.0]), chord=1e-3, segment_length=2.0, deflection=0.01
+        )
+    assert str(exc.value) == (
+        "no exact point of face 4 at z=1.0000 mm (the faces named count the reference's topology, whose "
+        "faces with a pole are divided: 1, 2, 3, 4 of the solid's face 1; 5 of the solid's face 2)"
+    )
+    monkeypatch.setattr(reference, "divide_pole_faces", lambda solid: None)
+    with pytest.raises(TessellationError, match=r"^no exact point of face 1 at z=1.0000 mm$"):
+        exact_sections(
+            read_step(hemisphere[0]), np.array([1.0]), chord=1e-3, segment_length=2.0, deflection=0.01
+        )
+
+
 def test_reference_repairs_a_solid_it_cannot_mesh_as_the_build_does(tmp_path, monkeypatch):
     """Where OCCT leaves a face of the solid as read unmeshed at the reference's deflection and the
     coarser ones up to the build's (trj7_b1-ec-214 turned (-99.8, 126.0, -162.8): its face 354,
