@@ -531,7 +531,9 @@ def divide_pole_faces(solid: TopoDS_Shape) -> tuple[TopoDS_Shape, tuple[int, ...
     exp = TopExp_Explorer(result, TopAbs_FACE)
     order = []
     while exp.More():
-        order.append(origin[part_of.FindIndex(exp.Current()) - 1])
+        k = part_of.FindIndex(exp.Current())
+        assert k > 0, "a face of the divided solid that no face of the solid became"
+        order.append(origin[k - 1])
         exp.Next()
     return result, tuple(order)
 
