@@ -21,6 +21,7 @@ from OCP.BRep import BRep_Tool
 from OCP.BRepAdaptor import BRepAdaptor_Curve
 from OCP.BRepAlgoAPI import BRepAlgoAPI_Section
 from OCP.BRepTools import BRepTools
+from OCP.collections import IndexedMap_TopoDS_Shape_TopTools_ShapeMapHasher as ShapeIndexedMap
 from OCP.GCPnts import GCPnts_QuasiUniformDeflection
 from OCP.gp import gp_Dir, gp_Pln, gp_Pnt
 from OCP.ShapeBuild import ShapeBuild_ReShape
@@ -39,7 +40,7 @@ from worker.dst.sampler_records import VertexPool
 from worker.dst.sampling import RingSampler
 from worker.dst.sections import cut_topology, section_pairs_per_plane
 from worker.dst.step_io import LoadedPart, heal_wires
-from worker.dst.topomesh import ShapeIndexedMap, build_topomesh
+from worker.dst.topomesh import build_topomesh
 
 # Deflections (times the one asked for) tried in turn for the reference's topology mesh: BRepMesh's
 # result at some deflections is not a closed manifold on some files, at others it is. The coarser

@@ -468,13 +468,10 @@ def test_reference_topology_retries_another_deflection(tmp_path, monkeypatch):
 
 def _face_count(shape) -> int:
     from OCP.TopAbs import TopAbs_FACE
-    from OCP.TopExp import TopExp_Explorer
 
-    exp, n = TopExp_Explorer(shape, TopAbs_FACE), 0
-    while exp.More():
-        n += 1
-        exp.Next()
-    return n
+    from worker.dst.step_io import _count
+
+    return _count(shape, TopAbs_FACE)
 
 
 @pytest.mark.parametrize("nurbs", [True, False], ids=["bspline", "sphere"])
