@@ -70,9 +70,6 @@ class TopoMesh:
     # (face index, triangles added, largest distance of the patch from the surface, mm)
     patched_faces: tuple[tuple[int, int, float], ...] = ()
     dropped_triangles: int = 0  # BRepMesh triangles dropped where a face folded over or was doubled
-    # for each face, the solid's face it is part of, where the mesh is of the solid with faces divided
-    # (the exact reference's: ``reference.divide_pole_faces``); None: the solid's own faces
-    face_origin: tuple[int, ...] | None = None
 
     @property
     def n_nodes(self) -> int:

@@ -493,9 +493,9 @@ def test_the_reference_meshes_a_face_with_a_pole_in_quarters_and_finds_the_same_
     solid = part.solids[0]
     made = reference.divide_pole_faces(solid)
     assert made is not None
-    divided, origin = made
+    divided = made.shape
     assert (_face_count(solid), _face_count(divided)) == (2, 5)  # the dome's quarters and the disc
-    assert origin == (0, 0, 0, 0, 1)  # each face's face of the solid (the dome is its first)
+    assert made.face_origin == (0, 0, 0, 0, 1)  # each face's face of the solid (the dome is its first)
     volumes, areas = [], []
     for shape in (solid, divided):  # OCCT's adaptive integration, to 1e-10 of each
         props = GProp_GProps()
@@ -529,6 +529,12 @@ def test_the_reference_meshes_a_face_with_a_pole_in_quarters_and_finds_the_same_
     for a, b in zip(quartered.loops, whole.loops, strict=True):
         assert _polyline_gap(a[0], b[0]) <= chord
         assert _polyline_gap(b[0], a[0]) <= chord
+    # the edge that divides the dome at u = pi (x < 0, y = 0) is no B-rep edge to the sections: no
+    # corner where they cross it (the dome's seam, at y = 0 and x > 0, is one)
+    for loops, corners in ((quartered.loops, quartered.corners), (whole.loops, whole.corners)):
+        at = np.concatenate([lp[0][c[0]] for lp, c in zip(loops, corners, strict=True)])
+        assert np.any((np.abs(at[:, 1]) < 1e-6) & (at[:, 0] > 0))
+        assert not np.any((np.abs(at[:, 1]) < 1e-6) & (at[:, 0] < 0))
     # an inscribed polyline of sag <= chord: at most chord / radius of the circle's length short
     circle = 2 * math.pi * np.sqrt(R * R - (quartered.zmin + heights) ** 2)
     assert np.all(quartered.perimeters() <= circle * (1 + 1e-7))
@@ -559,30 +565,70 @@ def test_a_divided_solid_brepmesh_cannot_mesh_is_meshed_as_it_is(hemisphere, mon
     assert ref.perimeters() == pytest.approx(2 * math.pi * radius, rel=1e-4)
 
 
-def test_a_reference_failure_naming_a_divided_face_says_which_face_of_the_solid_it_is(
-    hemisphere, monkeypatch
-):
-    """An error of the reference's sampling names faces of its topology mesh: where that mesh's pole
-    faces are divided, the message says which of the solid's faces they are part of."""
+def test_the_divided_solids_mesh_is_a_mesh_of_the_solids_own_faces(hemisphere):
+    """The reference's topology mesh of the solid with its pole faces divided is a mesh of the solid's
+    own faces: each triangle on the face its part belongs to, its corners' (u, v) on that face's
+    surface (at the nodes, to the file's edge tolerance), and of the divided solid's edges only the
+    solid's own (or their pieces) are B-rep edges: not the iso curves that divide the dome. A message
+    naming a face names the solid's."""
+    from OCP.gp import gp_Pnt
+
     from worker.dst import reference
 
-    def fails(mesh, *args):
-        raise TessellationError(f"no exact point of face {len(mesh.faces) - 1} at z=1.0000 mm")
+    solid = read_step(hemisphere[0]).solids[0]
+    made = reference.divide_pole_faces(solid)
+    assert made is not None
+    mesh = reference._topomesh(solid, 0.01, 2 * R)
+    whole = reference.build_topomesh(solid, deflection=0.01, angular=0.35, merge_tol=1e-8)
+    assert len(mesh.faces) == len(whole.faces) == 2
+    for ev, own in zip(mesh.faces, whole.faces, strict=True):
+        assert ev.face.IsSame(own.face)
+    assert set(np.unique(mesh.tri_face).tolist()) == {0, 1}
+    p = gp_Pnt()
+    for t in range(0, len(mesh.tris), 97):
+        for c in range(3):
+            mesh.faces[int(mesh.tri_face[t])].ad.D0(*map(float, mesh.tri_uv[t, c]), p)
+            assert np.linalg.norm(np.array(p.Coord()) - mesh.xyz[mesh.tris[t, c]]) < 1e-6
+    # the B-rep edges the mesh's edges lie on: the equator and the dome's seam, not the iso curves
+    # (at u = pi and at mid-height) that divided it
+    on_edges = mesh.xyz[np.unique(np.array(list(mesh.edge_of)).ravel())]
+    at_equator = np.abs(on_edges[:, 2]) < 1e-9
+    on_seam = (np.abs(on_edges[:, 1]) < 1e-6) & (on_edges[:, 0] > -1e-6)
+    assert np.all(at_equator | on_seam)
+    assert not np.any(~at_equator & (np.abs(on_edges[:, 1]) < 1e-6) & (on_edges[:, 0] < -1e-3))
 
-    monkeypatch.setattr(reference, "_sections_in_runs", fails)
-    with pytest.raises(TessellationError) as exc:
-        exact_sections(
-            read_step(hemisphere[0]), np.array([1.0]), chord=1e-3, segment_length=2.0, deflection=0.01
-        )
-    assert str(exc.value) == (
-        "no exact point of face 4 at z=1.0000 mm (the faces named count the reference's topology, whose "
-        "faces with a pole are divided: 1, 2, 3, 4 of the solid's face 1; 5 of the solid's face 2)"
+
+def test_a_division_that_moves_a_face_s_parameters_is_not_used(hemisphere, monkeypatch):
+    """Where a part of a divided face is not on its face's surface at the same (u, v) (here: the
+    parts told they belong to each other's faces), the divided solid's mesh cannot stand for the
+    solid's: the solid is meshed as it is."""
+    from worker.dst import reference
+
+    solid = read_step(hemisphere[0]).solids[0]
+    made = reference.divide_pole_faces(solid)
+    assert made is not None
+    monkeypatch.setattr(
+        reference,
+        "divide_pole_faces",
+        lambda s: dataclasses.replace(made, face_origin=tuple(1 - f for f in made.face_origin)),
     )
-    monkeypatch.setattr(reference, "divide_pole_faces", lambda solid: None)
-    with pytest.raises(TessellationError, match=r"^no exact point of face 1 at z=1.0000 mm$"):
-        exact_sections(
-            read_step(hemisphere[0]), np.array([1.0]), chord=1e-3, segment_length=2.0, deflection=0.01
+    with pytest.raises(TessellationError, match="does not keep its face's parameters"):
+        reference._on_solid_faces(
+            reference.build_topomesh(made.shape, deflection=0.01, angular=0.35, merge_tol=1e-8),
+            solid,
+            reference.divide_pole_faces(solid),
         )
+    meshed = []
+    build = reference.build_topomesh
+
+    def counted(shape, **kw):
+        meshed.append(_face_count(shape))
+        return build(shape, **kw)
+
+    monkeypatch.setattr(reference, "build_topomesh", counted)
+    mesh = reference._topomesh(solid, 0.01, 2 * R)
+    assert meshed == [5, 2]
+    assert len(mesh.faces) == 2
 
 
 def test_reference_repairs_a_solid_it_cannot_mesh_as_the_build_does(tmp_path, monkeypatch):
