@@ -555,7 +555,7 @@ def _on_solid_faces(mesh: TopoMesh, solid: TopoDS_Shape, divided: DividedSolid) 
     (u, v) are the face's), and the edges a division added (iso curves inside a face) no longer
     B-rep edges. The sections then run across them as across any edge inside a face: no corner, no
     face change and no solve on a B-rep edge there (with them, the B-spline hemisphere's reference
-    sampled 2.6% more points, a corner where each loop crossed each such edge), and a message names
+    sampled 1.1% more points, a corner where each loop crossed each such edge), and a message names
     the solid's own faces. Raises TessellationError where a part's surface is not its face's at the
     same (u, v) (a division that reparametrised a surface): the solid is meshed whole."""
     origin = np.asarray(divided.face_origin, dtype=np.int64)
