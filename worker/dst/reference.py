@@ -490,7 +490,9 @@ class DividedSolid:
 
     shape: TopoDS_Shape
     face_origin: tuple[int, ...]  # for each face of ``shape``, the solid's face it is part of
-    solid_edges: ShapeIndexedMap  # the edges of ``shape`` that are the solid's edges or parts of them
+    # the edges of ``shape`` the division added (iso curves inside a face, neither an edge of the
+    # solid nor a piece of one), numbered from 0 as ``build_topomesh`` numbers its edges
+    added_edges: frozenset[int]
 
 
 def divide_pole_faces(solid: TopoDS_Shape) -> DividedSolid | None:
@@ -546,7 +548,14 @@ def divide_pole_faces(solid: TopoDS_Shape) -> DividedSolid | None:
         while exp.More():
             solid_edges.Add(exp.Current())
             exp.Next()
-    return DividedSolid(result, tuple(order), solid_edges)
+    result_edges = ShapeIndexedMap()
+    TopExp.MapShapes_s(result, TopAbs_EDGE, result_edges)
+    added = frozenset(
+        i - 1
+        for i in range(1, result_edges.Extent() + 1)
+        if not solid_edges.Contains(result_edges.FindKey(i))
+    )
+    return DividedSolid(result, tuple(order), added)
 
 
 def _on_solid_faces(mesh: TopoMesh, solid: TopoDS_Shape, divided: DividedSolid) -> TopoMesh:
@@ -580,18 +589,11 @@ def _on_solid_faces(mesh: TopoMesh, solid: TopoDS_Shape, divided: DividedSolid) 
                         f"face {part + 1} of the divided solid does not keep its face's parameters "
                         f"({gap:.2g} mm apart at the same (u, v))"
                     )
-    edge_map = ShapeIndexedMap()  # numbered as ``build_topomesh`` numbers the divided solid's edges
-    TopExp.MapShapes_s(divided.shape, TopAbs_EDGE, edge_map)
-    added = {
-        i - 1
-        for i in range(1, edge_map.Extent() + 1)
-        if not divided.solid_edges.Contains(edge_map.FindKey(i))
-    }
     return replace(
         mesh,
         tri_face=tri_face,
         faces=faces,
-        edge_of={key: e for key, e in mesh.edge_of.items() if e not in added},
+        edge_of={key: e for key, e in mesh.edge_of.items() if e not in divided.added_edges},
         filled_faces=tuple((int(origin[f]), area) for f, area in mesh.filled_faces),
         patched_faces=tuple((int(origin[f]), n, d) for f, n, d in mesh.patched_faces),
     )

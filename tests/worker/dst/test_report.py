@@ -569,15 +569,15 @@ def test_the_divided_solids_mesh_is_a_mesh_of_the_solids_own_faces(hemisphere):
     """The reference's topology mesh of the solid with its pole faces divided is a mesh of the solid's
     own faces: each triangle on the face its part belongs to, its corners' (u, v) on that face's
     surface (at the nodes, to the file's edge tolerance), and of the divided solid's edges only the
-    solid's own (or their pieces) are B-rep edges: not the iso curves that divide the dome. A message
-    naming a face names the solid's."""
+    solid's own (or their pieces) are B-rep edges: not the iso curves that divide the dome (so a
+    message naming a face names the solid's)."""
     from OCP.gp import gp_Pnt
 
     from worker.dst import reference
 
     solid = read_step(hemisphere[0]).solids[0]
     made = reference.divide_pole_faces(solid)
-    assert made is not None
+    assert made is not None and len(made.added_edges) == 4  # the meridian at u = pi, the mid-height circle
     mesh = reference._topomesh(solid, 0.01, 2 * R)
     whole = reference.build_topomesh(solid, deflection=0.01, angular=0.35, merge_tol=1e-8)
     assert len(mesh.faces) == len(whole.faces) == 2
