@@ -29,7 +29,10 @@ def edge_defects(tris: np.ndarray, n_vertices: int) -> tuple[int, int]:
     # vertex to the lower. Each run of one key then holds the edge's forward occurrences, then its
     # backward ones. (Two sorts, of the directed keys and of their reverses, took twice as long: 1.0
     # s against 0.56 s on 2 million triangles.)
-    key = np.sort(2 * (np.minimum(a, b) * n_vertices + np.maximum(a, b)) + (a > b))
+    key = 2 * (np.minimum(a, b) * n_vertices + np.maximum(a, b)) + (a > b)
+    if 2 * n_vertices * n_vertices < 2**32:  # sorted as 32-bit keys where they fit: ~1.8x faster
+        key = key.astype(np.uint32)
+    key = np.sort(key)
     start = np.flatnonzero(np.concatenate([[True], (key[1:] >> 1) != (key[:-1] >> 1)]))
     back = np.add.reduceat(key & 1, start)
     forth = np.diff(np.append(start, len(key))) - back
@@ -87,9 +90,14 @@ def drop_unreferenced(tris: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np
 
 
 def signed_volume(xyz: np.ndarray, tris: np.ndarray) -> float:
-    """Signed volume (mm^3) enclosed by a closed triangle mesh (divergence theorem); > 0 if outward."""
-    a, b, c = xyz[tris[:, 0]], xyz[tris[:, 1]], xyz[tris[:, 2]]
-    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+    """Signed volume (mm^3) enclosed by a closed triangle mesh (divergence theorem); > 0 if outward.
+    (The triple products written out per coordinate: ~3x faster than ``np.cross`` on (n, 3) rows.)"""
+    x, y, z = (np.ascontiguousarray(xyz[:, k], dtype=np.float64) for k in range(3))
+    a, b, c = tris[:, 0], tris[:, 1], tris[:, 2]
+    bx, by, bz, cx, cy, cz = x[b], y[b], z[b], x[c], y[c], z[c]
+    return float(
+        (x[a] * (by * cz - bz * cy) + y[a] * (bz * cx - bx * cz) + z[a] * (bx * cy - by * cx)).sum() / 6.0
+    )
 
 
 def split_t_junctions(xyz: np.ndarray, tris: np.ndarray, tol: float) -> tuple[np.ndarray, int]:

@@ -637,6 +637,10 @@ def _build_report(
         if arrived := kept_meshes(side.items_ready()):  # the others as OCCT makes them
             todo.extend(arrived)
             add(arrived)
+            # again: OCCT's helper may have ended meanwhile (after its last baseline it only takes
+            # the part's exact box and volume, the hemisphere's in 3 ms: this process then measured
+            # a piece alone before it forked a helper for the other core)
+            free = tasks.free()
         hand_out(free)
         if pending:
             measure([pending.pop(0)], False)

@@ -48,11 +48,13 @@ def _counted(tris: np.ndarray) -> tuple[int, int]:
     return missing, sum(1 for k in edges.values() if k > 1)
 
 
+@pytest.mark.parametrize("n_vertices", [600, 60_000])
 @pytest.mark.parametrize("change", ["none", "drop", "flip", "repeat", "degenerate", "reorder"])
-def test_edge_defects_counts_as_a_dictionary_of_directed_edges_does(change):
+def test_edge_defects_counts_as_a_dictionary_of_directed_edges_does(change, n_vertices):
     """The quick answer for a closed, oriented mesh (its undirected edges pair up once each way) and
     the full count otherwise agree with counting every directed edge, on a torus of 1,200 triangles
-    changed at random places."""
+    changed at random places; with edge keys sorted as 32-bit numbers (600 vertices) and as 64-bit
+    ones (as if there were 60,000: keys up to 2 n^2 no longer fit in 32 bits)."""
     rng = np.random.default_rng(7)
     tris = _torus(20, 30)
     k = rng.choice(len(tris), size=3, replace=False)
@@ -68,7 +70,7 @@ def test_edge_defects_counts_as_a_dictionary_of_directed_edges_does(change):
         tris = np.roll(tris[rng.permutation(len(tris))], 1, axis=1)
     expected = _counted(tris)
     assert (expected == (0, 0)) == (change in ("none", "reorder"))
-    assert edge_defects(tris, 600) == expected
+    assert edge_defects(tris, n_vertices) == expected
 
 
 def test_edges_that_do_not_pair_up_are_counted_whatever_their_keys_parity():
