@@ -80,7 +80,10 @@ class MeshReport(BaseModel):
     volume_mm3: float = Field(description="Enclosed (signed) volume, mm^3.")
     volume_rel_err: float | None = Field(None, description="(mesh volume - exact volume) / exact volume.")
     seconds: float | None = Field(
-        None, ge=0, description="Time taken to build the mesh, s (None if not built here)."
+        None,
+        ge=0,
+        description="Time taken to build the mesh, s (None if not built here); a baseline made on one "
+        "thread: its CPU seconds, the time it takes on a core of its own (the description says so).",
     )
     summary: Summary = Field(description="Statistics of the per-layer metrics.")
     ratios: dict[str, float | None] | None = Field(

@@ -1509,6 +1509,29 @@ def test_a_baseline_the_mesher_leaves_with_holes_is_made_of_the_part_repaired_as
         conventional_mesh(as_read, BASELINE_PRESETS["occt_fast"])
 
 
+@pytest.mark.parametrize("parallel", [False, True])
+def test_a_baseline_made_on_one_thread_is_timed_by_its_cpu_seconds(monkeypatch, parallel):
+    """A baseline meshed on one thread (in a helper process) reports its CPU seconds, what it takes on
+    a core of its own: in a job the helper waits for a core beside the DST build, and its wall time
+    said 0.16 s for the hemisphere's 0.03 s occt_fast mesh. One meshed on OCCT's thread pool reports
+    its wall time. Here the mesher waits 0.3 s without working: that is not the mesh's time on one
+    thread, and it is on the pool."""
+    import time
+
+    from worker.dst import report as report_mod
+
+    def idle_mesher(part, preset, *, parallel=True):
+        time.sleep(0.3)
+        return np.zeros((3, 3)), np.array([[0, 1, 2]])
+
+    monkeypatch.setattr(report_mod, "conventional_mesh", idle_mesher)
+    (made,) = list(report_mod._occt_side(object(), ["occt_fast"], parallel, exact=False))
+    if parallel:
+        assert made.seconds >= 0.3 and "CPU seconds" not in made.description
+    else:
+        assert made.seconds < 0.1 and made.description.endswith("(on one thread: its CPU seconds)")
+
+
 def test_a_baseline_the_mesher_leaves_with_holes_and_no_repair_mends_is_left_out(hemisphere, monkeypatch):
     """Where repairing the part changes nothing, the baseline whose mesh OCCT left with a hole is left
     out and named in the warnings; the report goes on with the other meshes, measured as without it."""
