@@ -237,12 +237,22 @@ class SegmentSet:
         self._present = self._count > 0
         self._tree: cKDTree | None = None
         self._by_plane: np.ndarray | None = None  # the segments in plane order (``_brute``)
-        if not lazy and len(seg):
+        self._arc_mid: np.ndarray | None = None  # see ``arc_mid``
+        if not lazy and len(seg):  # both made now (a reference's: before measuring helpers fork)
             self._index()
+            self._arc_mid = arc_midpoints(seg, self.curv)
 
     @property
     def tree(self) -> cKDTree:
         return self._index()
+
+    @property
+    def arc_mid(self) -> np.ndarray:
+        """The modelled curve's point over each segment's midpoint (``arc_midpoints``), made once (a
+        set that is not ``lazy``: when it is made): a reference's serves every mesh measured against it."""
+        if self._arc_mid is None:
+            self._arc_mid = arc_midpoints(self.seg, self.curv)
+        return self._arc_mid
 
     def _index(self) -> cKDTree:
         """The k-d tree of points along the segments (built on first use)."""
@@ -523,7 +533,7 @@ def _reference_to_cut(
     search(np.concatenate([uncovered, ids[_first_per_plane(d0[ids], plane)]]))
     lower = max_per_plane(d0[ids][exact[ids]], plane[exact[ids]], n_planes)
     nxt = ref.nxt[ids]
-    mid = arc_midpoints(ref.seg[ids], ref.curv[ids])
+    mid = ref.arc_mid[ids]
 
     def mid_bound(spans: np.ndarray) -> np.ndarray:
         """The arc midpoints' distances to the nearest segments of their ends and neighbours."""
@@ -635,7 +645,7 @@ def compare(
     if ref.loop_first is not None and n_ref:
         d_ref_to_cut = _reference_to_cut(ref, cut_set, near_vert[cut.seg_node], cut_has, n_planes, workers)
     else:
-        ref_pts = np.concatenate([ref.seg[:, 0], arc_midpoints(ref.seg, ref.curv)])
+        ref_pts = np.concatenate([ref.seg[:, 0], ref.arc_mid])
         ref_pl = np.concatenate([ref.seg_plane, ref.seg_plane])
         d_ref_to_cut = max_per_plane(cut_set.distance(ref_pts, ref_pl, workers=workers), ref_pl, n_planes)
     chord_dev = np.maximum(d_ref_to_cut, d_cut_to_ref)
