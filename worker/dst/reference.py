@@ -35,7 +35,6 @@ from worker.dst.errors import TessellationError, UnmeshedFaceError
 from worker.dst.exact import FaceEval
 from worker.dst.forked import TaskGroup, idle_cores
 from worker.dst.lowest import snap_extremes
-from worker.dst.meshops import unique_ints
 from worker.dst.pipeline import bbox_diagonal
 from worker.dst.ridges import prepare_extremes
 from worker.dst.sampler_records import VertexPool
@@ -578,8 +577,13 @@ def _on_solid_faces(mesh: TopoMesh, solid: TopoDS_Shape, divided: DividedSolid) 
     # corners themselves can be off both by the file's edge tolerance: a node on an edge is the edge
     # curve's point)
     at_part, at_face = gp_Pnt(), gp_Pnt()
-    for part in unique_ints(mesh.tri_face).tolist():
-        own = np.flatnonzero(mesh.tri_face == part)
+    # each part's triangles in ascending order, grouped by one stable sort (not a scan per part)
+    order = np.argsort(mesh.tri_face, kind="stable")
+    bounds = np.searchsorted(mesh.tri_face[order], np.arange(len(mesh.faces) + 1))
+    for part in range(len(mesh.faces)):
+        own = order[bounds[part] : bounds[part + 1]]
+        if not len(own):
+            continue
         for t in own[np.linspace(0, len(own) - 1, min(8, len(own))).astype(np.int64)].tolist():
             for u, v in mesh.tri_uv[t].tolist():
                 mesh.faces[part].ad.D0(u, v, at_part)
